@@ -1,0 +1,1 @@
+"""Simulation engine: MLS-MPM solver pieces and the geometry helpers they use."""

@@ -1,0 +1,94 @@
+"""Constitutive models: one Taichi hook per model, returning the projected F and the Kirchhoff stress.
+
+Notation: F deformation gradient (after the substep update F ← (I + Δt C) F), C the APIC affine velocity
+(≈ ∇v, 1/s), J = det F, F = U Σ Vᵀ its SVD, R = U Vᵀ. Parameters (μ, λ, y1, y2, η) come from
+`Material.kernel_params()` (Pa, Pa, model-specific, model-specific, Pa·s). Every model returns Kirchhoff
+stress τ = J σ (Pa), which P2G multiplies by the rest volume V⁰.
+
+- fixed_corotated (elastic, rigid):     τ = 2μ (F − R) Fᵀ + λ J (J − 1) I              [Stomakhin 2012]
+- corotated_box_yield (plastic):        Σ ← clamp(Σ, 1 − y1, 1 + y2), F ← U Σ Vᵀ, then fixed-corotated
+                                                                                        [Stomakhin 2013]
+- von_mises (ice cream, plasticine):    ε = ln Σ, ε̂ = dev ε; if |ε̂| > sqrt(2/3)·σ_y/(2μ) project ε̂ onto
+                                        the yield surface (perfect plasticity), F ← U exp(ε) Vᵀ,
+                                        τ = U (2μ ε + λ tr(ε) I) Uᵀ          [Klár 2016, Huang 2021]
+- liquid (weakly compressible):         J ← det F, F ← J^(1/3) I, τ = λ J (J − 1) I, i.e. pressure
+                                        p = −λ (J − 1)                          [Tampubolon 2017, FluidLab]
+- viscous_liquid:                       liquid + τ_v = η J (C + Cᵀ − ⅔ tr(C) I) = 2 η J dev(sym ∇v)
+
+The solver unrolls the models present in a scene with `ti.static`, so a scene of liquids never pays for an
+SVD.
+"""
+from __future__ import annotations
+
+import taichi as ti
+
+# Singular values below this are clamped before a logarithm (an inverted or crushed element).
+_MIN_STRETCH = 0.05
+
+
+@ti.func
+def fixed_corotated(F, C, prm):
+    """Elastic: F unchanged, fixed-corotated Kirchhoff stress."""
+    U, sig, V = ti.svd(F)
+    R = U @ V.transpose()
+    J = F.determinant()
+    tau = 2.0 * prm[0] * (F - R) @ F.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    return F, tau
+
+
+@ti.func
+def corotated_box_yield(F, C, prm):
+    """Plastic: clamp principal stretches to [1 - y1, 1 + y2], then fixed-corotated stress."""
+    U, sig, V = ti.svd(F)
+    for d in ti.static(range(3)):
+        sig[d, d] = ti.min(ti.max(sig[d, d], 1.0 - prm[2]), 1.0 + prm[3])
+    Fp = U @ sig @ V.transpose()
+    R = U @ V.transpose()
+    J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+    tau = 2.0 * prm[0] * (Fp - R) @ Fp.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    return Fp, tau
+
+
+@ti.func
+def von_mises(F, C, prm):
+    """Hencky-strain St. Venant–Kirchhoff with von Mises return mapping (uniaxial yield stress y1)."""
+    U, sig, V = ti.svd(F)
+    mu, lam = prm[0], prm[1]
+    eps = ti.Vector([ti.log(ti.max(ti.abs(sig[d, d]), _MIN_STRETCH)) for d in ti.static(range(3))])
+    eps_hat = eps - eps.sum() / 3.0
+    eps_hat_norm = eps_hat.norm() + 1e-20
+    yield_strain = ti.sqrt(2.0 / 3.0) * prm[2] / (2.0 * mu)
+    if eps_hat_norm > yield_strain:
+        eps -= (1.0 - yield_strain / eps_hat_norm) * eps_hat
+    Fp = U @ ti.Matrix([[ti.exp(eps[0]), 0.0, 0.0], [0.0, ti.exp(eps[1]), 0.0], [0.0, 0.0, ti.exp(eps[2])]]) \
+        @ V.transpose()
+    s = 2.0 * mu * eps + lam * eps.sum()
+    tau = U @ ti.Matrix([[s[0], 0.0, 0.0], [0.0, s[1], 0.0], [0.0, 0.0, s[2]]]) @ U.transpose()
+    return Fp, tau
+
+
+@ti.func
+def liquid(F, C, prm):
+    """Weakly compressible liquid: keep only the volume part of F; pressure from J."""
+    J = F.determinant()
+    Fp = ti.Matrix.identity(float, 3) * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0)
+    tau = ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    return Fp, tau
+
+
+@ti.func
+def viscous_liquid(F, C, prm):
+    """Liquid plus deviatoric Newtonian viscous stress."""
+    Fp, tau = liquid(F, C, prm)
+    J = F.determinant()
+    tau += prm[4] * J * (C + C.transpose() - (2.0 / 3.0) * C.trace() * ti.Matrix.identity(float, 3))
+    return Fp, tau
+
+
+MODELS = {
+    "fixed_corotated": fixed_corotated,
+    "corotated_box_yield": corotated_box_yield,
+    "von_mises": von_mises,
+    "liquid": liquid,
+    "viscous_liquid": viscous_liquid,
+}

@@ -1,0 +1,140 @@
+"""Static colliders as signed distance fields, evaluated at grid nodes.
+
+Each static shape becomes a Taichi function φ(x) (metres, negative inside) built when the scene is built:
+analytic for primitives and containers (the same formulas as `fluidlab_core.shapes`), trilinear
+interpolation of a cached grid for meshes (`mesh_sdf.mesh_sdf_grid`). The normal is n = ∇φ/|∇φ| by central
+differences.
+
+Boundary condition at a grid node with φ < 0 (inside the collider), velocity v after the grid update:
+    sticky:           v ← 0
+    otherwise, with vₙ = v·n: if vₙ < 0 (moving into the collider)
+                      v_t = v − vₙ n,  v ← v_t · max(0, 1 + μ vₙ / |v_t|)     (Coulomb friction, μ ≥ 0)
+    separating velocities (vₙ ≥ 0) are left alone.
+
+No-leak rule: a wall stops liquid when at least two grid nodes lie inside it along its normal, so every
+particle's 3×3×3 stencil meets a node that removes the inward velocity. Walls thinner than
+`MIN_WALL_CELLS`·Δx are refused when the scene is built.
+"""
+from __future__ import annotations
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core import shapes as S
+
+MIN_WALL_CELLS = 2.0
+
+
+def _box_sdf(lo, hi):
+    c = [0.5 * (a + b) for a, b in zip(lo, hi)]
+    h = [0.5 * (b - a) for a, b in zip(lo, hi)]
+
+    @ti.func
+    def sdf(p):
+        q = ti.abs(p - ti.Vector(c)) - ti.Vector(h)
+        return ti.max(q, 0.0).norm() + ti.min(ti.max(q[0], ti.max(q[1], q[2])), 0.0)
+
+    return sdf
+
+
+def _sphere_sdf(center, radius):
+    @ti.func
+    def sdf(p):
+        return (p - ti.Vector(center)).norm() - radius
+
+    return sdf
+
+
+def _cylinder_sdf(center, radius, height):
+    half = 0.5 * height
+
+    @ti.func
+    def sdf(p):
+        d = p - ti.Vector(center)
+        q = ti.Vector([ti.sqrt(d[0] * d[0] + d[1] * d[1]) - radius, ti.abs(d[2]) - half])
+        return ti.max(q, 0.0).norm() + ti.min(ti.max(q[0], q[1]), 0.0)
+
+    return sdf
+
+
+def _difference(outer, hollow):
+    @ti.func
+    def sdf(p):
+        return ti.max(outer(p), -hollow(p))
+
+    return sdf
+
+
+class MeshSDF:
+    """A mesh static: its SDF grid in a Taichi field, read by trilinear interpolation."""
+
+    def __init__(self, grid, real):
+        self.origin = tuple(float(v) for v in grid.origin)
+        self.spacing = float(grid.spacing)
+        self.shape = tuple(int(n) for n in grid.values.shape)
+        self.values = ti.field(real, shape=self.shape)  # signed distance at the SDF grid's nodes (m)
+        self.values.from_numpy(grid.values.astype(np.float64 if real == ti.f64 else np.float32))
+
+    def func(self):
+        values, origin, inv_h, h, shape = self.values, self.origin, 1.0 / self.spacing, self.spacing, self.shape
+
+        @ti.func
+        def sdf(p):
+            g = (p - ti.Vector(origin)) * inv_h
+            # outside the grid: distance to the grid box plus the nearest stored value (conservative)
+            gc = ti.Vector([ti.min(ti.max(g[d], 0.0), shape[d] - 1.001) for d in ti.static(range(3))])
+            outside = (g - gc).norm() * h
+            i = ti.cast(ti.floor(gc), ti.i32)
+            f = gc - i
+            value = 0.0
+            for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+                w = (f[0] if a else 1.0 - f[0]) * (f[1] if b else 1.0 - f[1]) * (f[2] if c else 1.0 - f[2])
+                value += w * values[i[0] + a, i[1] + b, i[2] + c]
+            return value + outside
+
+        return sdf
+
+
+def sdf_func(shape, real, mesh_spacing: float):
+    """A Taichi SDF function for a static shape (metres)."""
+    if isinstance(shape, S.Box):
+        return _box_sdf(shape.lower, shape.upper)
+    if isinstance(shape, S.Sphere):
+        return _sphere_sdf(shape.center, shape.radius)
+    if isinstance(shape, S.Cylinder):
+        return _cylinder_sdf(shape.center, shape.radius, shape.height)
+    if isinstance(shape, (S.Cup, S.Tank)):
+        outer = shape._outer() if isinstance(shape, S.Cup) else S.Box(shape.lower, shape.upper)
+        hollow = shape._hollow()
+        return _difference(sdf_func(outer, real, mesh_spacing), sdf_func(hollow, real, mesh_spacing))
+    if isinstance(shape, S.Mesh):
+        from fluidlab_core.engine.mesh_sdf import mesh_sdf_grid
+
+        return MeshSDF(mesh_sdf_grid(shape.mesh(), mesh_spacing), real).func()
+    raise TypeError(f"no static collider for shape type {type(shape).__name__}")
+
+
+def make_collider(sdf, friction: float, sticky: bool, h: float):
+    """The boundary condition above as a Taichi function (x node position, v node velocity) -> v."""
+
+    @ti.func
+    def collide(x, v):
+        phi = sdf(x)
+        if phi < 0.0:
+            if ti.static(sticky):
+                v = ti.Vector.zero(float, 3)
+            else:
+                grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
+                                  for d in ti.static(range(3))])
+                n = grad / (grad.norm() + 1e-12)
+                vn = v.dot(n)
+                if vn < 0.0:
+                    vt = v - vn * n
+                    vt_norm = vt.norm()
+                    scale = 0.0
+                    if vt_norm > 1e-12:
+                        scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)
+                    v = vt * scale
+        return v
+
+    return collide

@@ -1,0 +1,104 @@
+"""Backend selection for the Taichi engine.
+
+`init()` is the only place the package calls `ti.init`. Importing `fluidlab_core` does no work; building
+a scene calls `ensure_init()`, which initialises the CPU backend in float32 when the user has not chosen.
+
+Calling `init()` again with the same arguments does nothing. Calling it with different arguments resets
+Taichi: simulators built before the reset are invalid and raise `RuntimeError` when used.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+ARCHES = ("auto", "cpu", "cuda")
+PRECISIONS = ("f32", "f64")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    arch: str  # what the user asked for
+    backend: str  # what runs: "cpu" or "cuda"
+    precision: str
+    seed: int | None
+    cpu_threads: int | None
+    generation: int  # bumped on every reset, so stale simulators can refuse to run
+
+
+_config: RuntimeConfig | None = None
+_generation = 0
+
+
+def _cuda_available(ti) -> bool:
+    try:
+        return bool(ti.lang.impl.is_arch_supported(ti.cuda))
+    except Exception:  # noqa: BLE001 - any failure to probe means "no CUDA"
+        return False
+
+
+def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
+         cpu_threads: int | None = None, debug: bool = False) -> RuntimeConfig:
+    """Choose the Taichi backend.
+
+    arch: "cpu" (default), "cuda", or "auto" (CUDA when a device is present, CPU otherwise).
+    precision: "f32" or "f64" for every real-valued field.
+    seed: seeds Taichi's random generator and the default particle sampling.
+    cpu_threads: threads for the CPU backend (default: all cores, or FLUIDLAB_CPU_THREADS).
+    """
+    global _config, _generation
+    if arch not in ARCHES:
+        raise ValueError(f"arch must be one of {ARCHES}, got {arch!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if cpu_threads is None and os.environ.get("FLUIDLAB_CPU_THREADS"):
+        cpu_threads = int(os.environ["FLUIDLAB_CPU_THREADS"])
+    if _config is not None and (_config.arch, _config.precision, _config.seed, _config.cpu_threads) == (
+            arch, precision, seed, cpu_threads):
+        return _config
+
+    import taichi as ti
+
+    if _config is not None:
+        ti.reset()
+    backend = arch
+    if arch == "auto":
+        backend = "cuda" if _cuda_available(ti) else "cpu"
+    if backend == "cuda" and not _cuda_available(ti):
+        raise RuntimeError("arch='cuda' was requested but Taichi finds no CUDA device; use arch='cpu' or 'auto'")
+    kwargs = dict(
+        arch=ti.cuda if backend == "cuda" else ti.cpu,
+        default_fp=ti.f64 if precision == "f64" else ti.f32,
+        default_ip=ti.i32,
+        debug=debug,
+        log_level=ti.WARN,
+        offline_cache=True,
+    )
+    if seed is not None:
+        kwargs["random_seed"] = int(seed)
+    if cpu_threads:
+        kwargs["cpu_max_num_threads"] = int(cpu_threads)
+    ti.init(**kwargs)
+    _generation += 1
+    _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, _generation)
+    return _config
+
+
+def ensure_init() -> RuntimeConfig:
+    """The current configuration, initialising the CPU/f32 default if `init` was never called."""
+    return _config if _config is not None else init()
+
+
+def current() -> RuntimeConfig | None:
+    return _config
+
+
+def real_dtype():
+    import taichi as ti
+
+    return ti.f64 if ensure_init().precision == "f64" else ti.f32
+
+
+def numpy_real():
+    import numpy as np
+
+    return np.float64 if ensure_init().precision == "f64" else np.float32

@@ -1,0 +1,241 @@
+"""Scene building: a domain in the world frame, particle bodies, static colliders; `build()` makes a
+`Simulator`.
+
+    scene = Scene(lower=(0.3, -0.2, 0.0), upper=(0.7, 0.2, 0.4), grid_res=64, dt=2e-3, substeps=10)
+    water = scene.add_particles(Box((0.35, -0.1, 0.02), (0.5, 0.1, 0.2)), materials.WATER, name="water")
+    scene.add_static(Cup(...), friction=0.3)
+    sim = scene.build()
+
+Units: metres, seconds, kilograms; the world frame is REP-103 (z up), gravity (0, 0, −9.81) m/s² unless set.
+Grid: Δx = (longest side of the domain) / grid_res; the other axes get as many cells as they need. Particles
+are sampled on a lattice of spacing Δx/2 (8 per cell) unless `particle_spacing` says otherwise.
+
+Stability is checked at build. The explicit solver needs, for the substep Δt = dt / substeps,
+    Δt ≤ cfl · Δx / (c_max + v_max)        c_max = max over materials of sqrt((λ + 2μ)/ρ)
+    Δt ≤ ρ Δx² / (6 η)                     for each viscous material (explicit diffusion)
+with cfl = 0.5 and v_max the fastest expected speed (`max_speed`, default: the initial speeds plus the
+free-fall speed sqrt(2 g H) over the domain height H). A scene that breaks either is refused with the
+numbers and the substep count that would satisfy it. Rigid materials do not enter c_max: their strain is
+reset every substep.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fluidlab_core import materials as M
+from fluidlab_core import shapes as S
+
+CFL_NUMBER = 0.5
+
+
+class UnstableTimeStepError(ValueError):
+    """The scene's substep is larger than the explicit solver's stability limit."""
+
+
+@dataclass(frozen=True)
+class ParticleHandle:
+    """A body of particles in a scene: rows start:start+count of every particle array."""
+
+    name: str
+    index: int
+    start: int
+    count: int
+    material: M.Material
+    body: int  # rigid body index, or −1
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.start + self.count)
+
+
+@dataclass(frozen=True)
+class StaticHandle:
+    name: str
+    shape: S.Shape
+    friction: float
+    sticky: bool
+
+
+@dataclass(frozen=True)
+class _Body:
+    handle: ParticleHandle
+    points: np.ndarray  # (n, 3) m
+    velocity: np.ndarray  # (n, 3) m/s
+    spacing: float  # sampling lattice (m): each particle's rest volume is spacing³
+
+
+def _vec3(name, value):
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return arr
+
+
+class Scene:
+    def __init__(self, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0), grid_res: int = 64, dt: float = 2e-3,
+                 substeps: int = 10, gravity=(0.0, 0.0, -9.81), particle_spacing: float | None = None,
+                 max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0):
+        """lower/upper: the domain walls (m). grid_res: cells along the longest side. dt: one `step` (s),
+        split into `substeps`. particle_spacing: sampling lattice (m, default Δx/2). max_speed: fastest
+        expected speed for the stability check (m/s). wall_friction: Coulomb coefficient of the domain walls.
+        seed: seeds particle jitter."""
+        self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
+        if not np.all(self.lower < self.upper):
+            raise ValueError(f"the domain needs lower < upper on every axis, got lower={tuple(self.lower)}, "
+                             f"upper={tuple(self.upper)}")
+        if not (isinstance(grid_res, (int, np.integer)) and grid_res >= 4):
+            raise ValueError(f"grid_res must be an integer >= 4, got {grid_res!r}")
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
+            raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+        if wall_friction < 0:
+            raise ValueError(f"wall_friction must be >= 0, got {wall_friction}")
+        self.grid_res = int(grid_res)
+        self.dx = float((self.upper - self.lower).max() / self.grid_res)
+        self.dt = float(dt)
+        self.substeps = int(substeps)
+        self.gravity = _vec3("gravity", gravity)
+        self.particle_spacing = float(particle_spacing) if particle_spacing else 0.5 * self.dx
+        if self.particle_spacing <= 0:
+            raise ValueError(f"particle_spacing must be positive, got {particle_spacing}")
+        self.max_speed = max_speed
+        self.wall_friction = float(wall_friction)
+        self.rng = np.random.default_rng(seed)
+        self.bodies: list[_Body] = []
+        self.statics: list[StaticHandle] = []
+        self._n_particles = 0
+        self._n_rigid = 0
+
+    @property
+    def substep_dt(self) -> float:
+        return self.dt / self.substeps
+
+    # --- contents ---------------------------------------------------------------------------------------
+    def add_particles(self, shape: S.Shape, material: M.Material, name: str | None = None,
+                      velocity=(0.0, 0.0, 0.0), spacing: float | None = None, jitter: float = 0.0) -> ParticleHandle:
+        """Fill `shape` with particles of `material`, moving at `velocity` (m/s). Returns a handle for
+        `Simulator.positions` and friends. A rigid material makes one rigid body per call."""
+        if not isinstance(material, M.Material):
+            raise TypeError(f"material must be a fluidlab_core.materials.Material, got {type(material).__name__}")
+        if isinstance(shape, (S.Cup, S.Tank)):
+            raise ValueError(f"{type(shape).__name__} is a container: add it with add_static(), and fill its "
+                             f"interior() with particles")
+        name = name or f"{material.name}_{len(self.bodies)}"
+        if any(b.handle.name == name for b in self.bodies):
+            raise ValueError(f"a particle body named {name!r} already exists")
+        s = float(spacing) if spacing else self.particle_spacing
+        points = shape.sample(s, rng=self.rng, jitter=jitter)
+        if len(points) == 0:
+            raise ValueError(f"{name!r}: the shape holds no particle at spacing {s:.4g} m; make it larger or the "
+                             f"spacing smaller")
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        if np.any(lo < self.lower) or np.any(hi > self.upper):
+            raise ValueError(f"{name!r}: particles span {tuple(np.round(lo, 4))}..{tuple(np.round(hi, 4))} m, outside "
+                             f"the domain {tuple(self.lower)}..{tuple(self.upper)} m")
+        vel = np.broadcast_to(_vec3("velocity", velocity), points.shape).copy()
+        body = -1
+        if material.is_rigid:
+            body, self._n_rigid = self._n_rigid, self._n_rigid + 1
+        handle = ParticleHandle(name, len(self.bodies), self._n_particles, len(points), material, body)
+        self._n_particles += len(points)
+        self.bodies.append(_Body(handle, points, vel, s))
+        return handle
+
+    def add_static(self, shape: S.Shape, friction: float = 0.5, sticky: bool = False,
+                   name: str | None = None) -> StaticHandle:
+        """A fixed collider: a primitive, a container (Cup, Tank) or a Mesh. friction: Coulomb coefficient;
+        sticky: particles touching it stop."""
+        if not isinstance(shape, S.Shape):
+            raise TypeError(f"shape must be a fluidlab_core.shapes.Shape, got {type(shape).__name__}")
+        if not (friction >= 0 and math.isfinite(friction)):
+            raise ValueError(f"friction must be a finite number >= 0, got {friction!r}")
+        handle = StaticHandle(name or f"static_{len(self.statics)}", shape, float(friction), bool(sticky))
+        self.statics.append(handle)
+        return handle
+
+    # --- checks -----------------------------------------------------------------------------------------
+    def stability_limits(self) -> dict:
+        """The substep limits of the module docstring, with the numbers that set them."""
+        mats = {b.handle.material.name: b.handle.material for b in self.bodies}
+        if self.max_speed is not None:
+            v_max = float(self.max_speed)
+        else:
+            v0 = max((float(np.linalg.norm(b.velocity, axis=1).max()) for b in self.bodies), default=0.0)
+            height = float(self.upper[2] - self.lower[2])
+            v_max = v0 + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
+        # Rigid bodies are left out: their strain is reset to a rotation every substep, so their stiffness does
+        # not accumulate stress and the projection removes every non-rigid velocity.
+        deformable = [m for m in mats.values() if not m.is_rigid]
+        stiffest = max(deformable, key=lambda m: m.wave_speed(), default=None)
+        c = stiffest.wave_speed() if stiffest else 0.0
+        limits = {"dx": self.dx, "v_max": v_max, "wave_speed": c,
+                  "stiffest": stiffest.name if stiffest else None,
+                  "cfl_dt": CFL_NUMBER * self.dx / (c + v_max) if c + v_max > 0 else math.inf,
+                  "viscous_dt": math.inf, "viscous_material": None}
+        for m in mats.values():
+            if m.viscosity > 0:
+                dt_v = m.density * self.dx ** 2 / (6.0 * m.viscosity)
+                if dt_v < limits["viscous_dt"]:
+                    limits["viscous_dt"], limits["viscous_material"] = dt_v, m.name
+        limits["max_dt"] = min(limits["cfl_dt"], limits["viscous_dt"])
+        return limits
+
+    def check(self):
+        """Refuse scenes the solver cannot run: unstable substep, walls too thin to hold liquid, nothing in it."""
+        if not self.bodies:
+            raise ValueError("the scene has no particles: add_particles() at least once")
+        lim = self.stability_limits()
+        sub = self.substep_dt
+        if sub > lim["max_dt"]:
+            need = math.ceil(self.dt / lim["max_dt"])
+            if lim["cfl_dt"] <= lim["viscous_dt"]:
+                why = (f"CFL limit {CFL_NUMBER}·Δx/(c + v_max) = {lim['cfl_dt']:.3g} s with Δx = {self.dx:.4g} m, "
+                       f"wave speed c = {lim['wave_speed']:.3g} m/s of material {lim['stiffest']!r} and expected "
+                       f"max speed v_max = {lim['v_max']:.3g} m/s")
+            else:
+                why = (f"viscous limit ρΔx²/(6η) = {lim['viscous_dt']:.3g} s of material "
+                       f"{lim['viscous_material']!r} with Δx = {self.dx:.4g} m")
+            raise UnstableTimeStepError(
+                f"unstable time step: substep dt/substeps = {self.dt:.3g}/{self.substeps} = {sub:.3g} s exceeds the "
+                f"{why}. Use substeps >= {need} for dt = {self.dt:.3g} s (or a smaller dt, or a coarser grid).")
+        min_wall = 2.0 * self.dx  # statics.MIN_WALL_CELLS, without importing Taichi here
+        for st in self.statics:
+            if isinstance(st.shape, (S.Cup, S.Tank)) and st.shape.thinnest_wall() < min_wall - 1e-12:
+                raise ValueError(
+                    f"static {st.name!r}: wall thickness {st.shape.thinnest_wall():.4g} m is under 2 grid cells "
+                    f"(2·Δx = {min_wall:.4g} m): liquid would leak through it. Make the wall at least "
+                    f"{min_wall:.4g} m thick or the grid finer.")
+
+    # --- build ------------------------------------------------------------------------------------------
+    def build(self, requires_grad: bool = False):
+        """Allocate the Taichi fields and compile the solver; returns a `Simulator`."""
+        if requires_grad:
+            raise NotImplementedError("differentiable simulation is not available yet: build(requires_grad=False)")
+        self.check()
+        from fluidlab_core import runtime
+        from fluidlab_core.engine import statics
+        from fluidlab_core.engine.mpm import MPMSolver, SolverSpec
+        from fluidlab_core.simulator import Simulator
+
+        config = runtime.ensure_init()
+        real = runtime.real_dtype()
+        mats: list[M.Material] = []
+        for b in self.bodies:
+            if b.handle.material not in mats:
+                mats.append(b.handle.material)
+        handles = [b.handle for b in self.bodies]
+        x = np.concatenate([b.points for b in self.bodies])
+        v = np.concatenate([b.velocity for b in self.bodies])
+        material_index = np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles])
+        body_index = np.concatenate([np.full(h.count, h.body) for h in handles])
+        rest_volume = np.concatenate([np.full(b.handle.count, b.spacing ** 3) for b in self.bodies])
+        colliders = [statics.make_collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
+                                           0.01 * self.dx) for st in self.statics]
+        spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
+                          wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
+                          body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders)
+        return Simulator(self, MPMSolver(spec, real), handles, config)

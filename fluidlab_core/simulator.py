@@ -1,0 +1,130 @@
+"""The user-facing simulator returned by `Scene.build()`: stepping, reading particles, state round-trips."""
+from __future__ import annotations
+
+import numpy as np
+
+from fluidlab_core import runtime
+
+
+class NonFiniteStateError(FloatingPointError):
+    """A particle field became NaN or infinite during a step."""
+
+
+_FIELD_NAMES = {1: "positions (x)", 2: "velocities (v)", 3: "deformation gradients (F)"}
+
+
+class Simulator:
+    """Steps an MLS-MPM scene. One `step()` advances dt seconds in `substeps` substeps.
+
+    positions(h)/velocities(h) return (N, 3) float64 arrays in the world frame (m, m/s) for a particle
+    handle from `Scene.add_particles` (or its name). `get_state()`/`set_state()` round-trip the whole
+    particle state exactly.
+    """
+
+    def __init__(self, scene, solver, handles, config):
+        self.scene = scene
+        self.solver = solver
+        self.handles = {h.name: h for h in handles}
+        self._config = config
+        self.step_count = 0
+        self.check_finite_every = 1  # steps between NaN checks (0: never)
+
+    # --- stepping ---------------------------------------------------------------------------------------
+    @property
+    def dt(self) -> float:
+        return self.scene.dt
+
+    @property
+    def time(self) -> float:
+        """Simulated time since the start or the last set_state (s)."""
+        return self.step_count * self.scene.dt
+
+    @property
+    def n_particles(self) -> int:
+        return self.solver.n_particles
+
+    def _check_alive(self):
+        current = runtime.current()
+        if current is None or current.generation != self._config.generation:
+            raise RuntimeError("this simulator was built before fluidlab_core.init() reset Taichi; build the scene "
+                               "again")
+
+    def step(self, action=None, n: int = 1):
+        """Advance `n` steps of dt seconds each. `action` is for tools (none in this scene)."""
+        if action is not None:
+            raise ValueError("this scene has no tools, so step() takes no action")
+        self._check_alive()
+        for _ in range(n):
+            for _ in range(self.scene.substeps):
+                self.solver.substep()
+                if self.solver.rigid is not None:
+                    self.solver.rigid.project()
+            self.step_count += 1
+            if self.check_finite_every and self.step_count % self.check_finite_every == 0:
+                self.check_finite()
+
+    def check_finite(self):
+        """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
+        self.solver.find_nonfinite()
+        code = int(self.solver.bad_field[None])
+        if code:
+            p = int(self.solver.bad_particle[None])
+            body = next(h for h in self.handles.values() if h.start <= p < h.start + h.count)
+            raise NonFiniteStateError(
+                f"NaN or infinity in particle {_FIELD_NAMES[code]} at step {self.step_count} (t = {self.time:.4g} s), "
+                f"first at particle {p} of body {body.name!r} ({body.material.name}). The explicit solver went "
+                f"unstable: use more substeps (smaller dt), a softer material, or lower speeds.")
+
+    # --- reading ----------------------------------------------------------------------------------------
+    def handle(self, h):
+        if isinstance(h, str):
+            try:
+                return self.handles[h]
+            except KeyError:
+                raise KeyError(f"no particle body named {h!r}; bodies: {', '.join(self.handles)}") from None
+        return h
+
+    def _rows(self, field, h):
+        data = field.to_numpy()
+        return (data if h is None else data[self.handle(h).slice]).astype(np.float64)
+
+    def positions(self, h=None) -> np.ndarray:
+        """(N, 3) particle positions (m) of body `h` (all particles if None)."""
+        return self._rows(self.solver.x, h)
+
+    def velocities(self, h=None) -> np.ndarray:
+        """(N, 3) particle velocities (m/s)."""
+        return self._rows(self.solver.v, h)
+
+    def deformation_gradients(self, h=None) -> np.ndarray:
+        return self._rows(self.solver.F, h)
+
+    def volumes(self, h=None) -> np.ndarray:
+        """Current particle volumes V⁰·det F (m³)."""
+        rest = self._rows(self.solver.rest_volume, h)
+        return rest * np.linalg.det(self.deformation_gradients(h))
+
+    def pressures(self, h=None) -> np.ndarray:
+        """Cauchy pressure −tr(σ)/3 of each particle (Pa)."""
+        self.solver.compute_pressure()
+        return self._rows(self.solver.pressure, h)
+
+    def masses(self, h=None) -> np.ndarray:
+        return self._rows(self.solver.mass, h)
+
+    # --- state ------------------------------------------------------------------------------------------
+    def get_state(self) -> dict:
+        """A copy of the particle state (x, v, C, F as numpy arrays in the solver's precision) and the step."""
+        s = self.solver
+        return {"x": s.x.to_numpy(), "v": s.v.to_numpy(), "C": s.C.to_numpy(), "F": s.F.to_numpy(),
+                "step": self.step_count}
+
+    def set_state(self, state: dict):
+        """Restore a state from `get_state()` exactly."""
+        s = self.solver
+        for key, field in (("x", s.x), ("v", s.v), ("C", s.C), ("F", s.F)):
+            arr = np.asarray(state[key])
+            if arr.ndim == 0 or arr.shape[0] != s.n_particles:
+                raise ValueError(f"state[{key!r}] has {arr.shape[0]} rows, this scene has {s.n_particles} particles")
+            field.from_numpy(arr.astype(s.np_real))
+        self.step_count = int(state.get("step", 0))
