@@ -12,7 +12,8 @@ One substep of length Δt (Hu et al. 2018, "A moving least squares material poin
 
 Units are SI throughout (m, s, kg, Pa). The grid covers the domain [lower, upper] plus `PAD` cells on every
 side, so that particles at a wall keep their whole 3×3×3 stencil on the grid; the domain walls are at
-lower and upper exactly. Particle rest volume V⁰ = s³ for a lattice spacing s, mass m = ρ V⁰.
+lower and upper: nodes sit at lower + (k + ½)Δx and those within half a cell of a wall remove velocity
+into it, so particles stop at the wall itself. Particle rest volume V⁰ = s³ for a lattice spacing s, mass m = ρ V⁰.
 """
 from __future__ import annotations
 
@@ -56,10 +57,12 @@ class MPMSolver:
         self.dx = float(spec.dx)
         self.inv_dx = 1.0 / self.dx
         self.dt = float(spec.dt)
-        self.origin = tuple(float(v) for v in spec.lower - PAD * self.dx)
+        # nodes sit at lower + (k + ½)Δx: the outermost wall nodes are half a cell inside the walls, so
+        # particles (which stop about half a cell beyond the last node that stops them) stop at the walls
+        self.origin = tuple(float(v) for v in spec.lower - (PAD - 0.5) * self.dx)
         self.lower = tuple(float(v) for v in spec.lower)
         self.upper = tuple(float(v) for v in spec.upper)
-        self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD + 1
+        self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD
                                 for d in range(3))
         self.gravity = tuple(float(g) for g in spec.gravity)
 
@@ -182,9 +185,12 @@ class MPMSolver:
 
     @ti.func
     def _walls(self, xn, vn):
-        """Domain walls at lower/upper: the normal velocity into a wall is removed (slip, optional friction)."""
+        """Domain walls at lower/upper: nodes within half a cell of a wall lose their velocity into it
+        (slip, optional Coulomb friction)."""
+        half = 0.5 * self.dx
         for d in ti.static(range(3)):
-            into = (xn[d] <= self.lower[d] and vn[d] < 0.0) or (xn[d] >= self.upper[d] and vn[d] > 0.0)
+            into = (xn[d] < self.lower[d] + half * 1.01 and vn[d] < 0.0) or \
+                (xn[d] > self.upper[d] - half * 1.01 and vn[d] > 0.0)
             if into:
                 normal_speed = ti.abs(vn[d])
                 vn[d] = 0.0
