@@ -5,7 +5,9 @@ are replaced by the rigid motion closest to what the MPM step produced (Müller 
     c = Σ m x / M,  v_c = Σ m v / M                      (linear momentum kept)
     A = Σ m (x − c) qᵀ,  R = polar(A)                    (best rotation)
     L = Σ m (x − c) × v,  I = Σ m (|r|² 1 − r rᵀ), r = R q,  ω = I⁻¹ L   (angular momentum kept)
-    x ← c + R q,  v ← v_c + ω × r,  C ← [ω]×,  F ← R
+    x ← c + R q,  v ← v_c + ω × r,  C ← [ω]×,  F ← R·(det F)^(1/3)
+Keeping the volumetric part of F (as the liquid model does) gives a body pressure λ J (J − 1) where the
+grid flow compresses it: without it, liquid particles drift into a rigid body, which then sinks.
 Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
 conserves momentum.
 """
@@ -89,4 +91,6 @@ class RigidBodies:
                 s.x[p] = self.com[b] + r
                 s.v[p] = self.momentum[b] / self.mass[b] + omega.cross(r)
                 s.C[p] = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
-                s.F[p] = R
+                # keep the volume change: it gives the body a pressure that pushes intruding particles out
+                J = s.F[p].determinant()
+                s.F[p] = R * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0)
