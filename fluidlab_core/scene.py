@@ -64,7 +64,7 @@ class _Body:
     handle: ParticleHandle
     points: np.ndarray  # (n, 3) m
     velocity: np.ndarray  # (n, 3) m/s
-    spacing: float  # sampling lattice (m): each particle's rest volume is spacing³
+    rest_volume: float  # what each particle stands for (m³): the sampling lattice's cell volume
 
 
 def _vec3(name, value):
@@ -129,9 +129,10 @@ class Scene:
             raise ValueError(f"a particle body named {name!r} already exists")
         s = float(spacing) if spacing else self.particle_spacing
         points = shape.sample(s, rng=self.rng, jitter=jitter)
-        if len(points) == 0:
-            raise ValueError(f"{name!r}: the shape holds no particle at spacing {s:.4g} m; make it larger or the "
-                             f"spacing smaller")
+        cell = shape.cell_volume(s)
+        if len(points) == 0 or shape.volume() < 0.5 * cell:
+            raise ValueError(f"{name!r}: the shape ({shape.volume():.3g} m³) holds no particle at spacing {s:.4g} m; "
+                             f"make it larger or the spacing smaller")
         lo, hi = points.min(axis=0), points.max(axis=0)
         if np.any(lo < self.lower) or np.any(hi > self.upper):
             raise ValueError(f"{name!r}: particles span {tuple(np.round(lo, 4))}..{tuple(np.round(hi, 4))} m, outside "
@@ -142,7 +143,7 @@ class Scene:
             body, self._n_rigid = self._n_rigid, self._n_rigid + 1
         handle = ParticleHandle(name, len(self.bodies), self._n_particles, len(points), material, body)
         self._n_particles += len(points)
-        self.bodies.append(_Body(handle, points, vel, s))
+        self.bodies.append(_Body(handle, points, vel, cell))
         return handle
 
     def add_static(self, shape: S.Shape, friction: float = 0.5, sticky: bool = False,
@@ -232,7 +233,7 @@ class Scene:
         v = np.concatenate([b.velocity for b in self.bodies])
         material_index = np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles])
         body_index = np.concatenate([np.full(h.count, h.body) for h in handles])
-        rest_volume = np.concatenate([np.full(b.handle.count, b.spacing ** 3) for b in self.bodies])
+        rest_volume = np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies])
         colliders = [statics.make_collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
                                            0.01 * self.dx) for st in self.statics]
         spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,

@@ -41,19 +41,27 @@ class Shape:
         raise NotImplementedError
 
     def sample(self, spacing: float, rng: np.random.Generator | None = None, jitter: float = 0.0) -> np.ndarray:
-        """Cell centres of a lattice of `spacing` (m) that lie inside; each stands for spacing³ of volume.
-        `jitter` moves each point by up to ±jitter·spacing per axis, drawn from `rng`."""
+        """Cell centres of a lattice of about `spacing` (m) that lie inside; each particle stands for
+        `cell_volume(spacing)` m³. `jitter` moves each point by up to ±jitter·spacing per axis, drawn from `rng`."""
         lo, hi = self.bounds()
-        counts = np.maximum(np.floor((hi - lo) / spacing + 1e-9).astype(int), 1)
+        steps = self._lattice_steps(spacing)
+        counts = np.maximum(np.floor((hi - lo) / steps + 1e-9).astype(int), 1)
         # centre the lattice in the bounds so that symmetric shapes are sampled symmetrically
-        start = lo + 0.5 * ((hi - lo) - (counts - 1) * spacing)
-        axes = [start[d] + spacing * np.arange(counts[d]) for d in range(3)]
+        start = lo + 0.5 * ((hi - lo) - (counts - 1) * steps)
+        axes = [start[d] + steps[d] * np.arange(counts[d]) for d in range(3)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         points = grid[self.sdf(grid) < 0.0]
         if jitter > 0.0:
             rng = rng if rng is not None else np.random.default_rng(0)
-            points = points + rng.uniform(-jitter * spacing, jitter * spacing, size=points.shape)
+            points = points + rng.uniform(-jitter * steps, jitter * steps, size=points.shape)
         return points
+
+    def _lattice_steps(self, spacing: float) -> np.ndarray:
+        return np.full(3, float(spacing))
+
+    def cell_volume(self, spacing: float) -> float:
+        """The rest volume each sampled particle stands for (m³)."""
+        return float(np.prod(self._lattice_steps(spacing)))
 
 
 @dataclass(frozen=True)
@@ -82,6 +90,11 @@ class Box(Shape):
     def volume(self):
         lo, hi = self.bounds()
         return float(np.prod(hi - lo))
+
+    def _lattice_steps(self, spacing):
+        # a whole number of cells per side, so that the particles fill the box exactly
+        extent = np.array(self.upper) - np.array(self.lower)
+        return extent / np.maximum(np.round(extent / spacing), 1)
 
 
 @dataclass(frozen=True)

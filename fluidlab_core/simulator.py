@@ -10,7 +10,7 @@ class NonFiniteStateError(FloatingPointError):
     """A particle field became NaN or infinite during a step."""
 
 
-_FIELD_NAMES = {1: "positions (x)", 2: "velocities (v)", 3: "deformation gradients (F)"}
+_FIELD_BITS = ((1, "positions (x)"), (2, "velocities (v)"), (4, "deformation gradients (F)"))
 
 
 class Simulator:
@@ -66,12 +66,13 @@ class Simulator:
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
         self.solver.find_nonfinite()
-        code = int(self.solver.bad_field[None])
-        if code:
+        bits = int(self.solver.bad_field[None])
+        if bits:
             p = int(self.solver.bad_particle[None])
             body = next(h for h in self.handles.values() if h.start <= p < h.start + h.count)
+            fields = ", ".join(name for bit, name in _FIELD_BITS if bits & bit)
             raise NonFiniteStateError(
-                f"NaN or infinity in particle {_FIELD_NAMES[code]} at step {self.step_count} (t = {self.time:.4g} s), "
+                f"NaN or infinity in particle {fields} at step {self.step_count} (t = {self.time:.4g} s), "
                 f"first at particle {p} of body {body.name!r} ({body.material.name}). The explicit solver went "
                 f"unstable: use more substeps (smaller dt), a softer material, or lower speeds.")
 

@@ -88,7 +88,7 @@ class MPMSolver:
         self.grid_m = ti.field(real, shape=self.grid_shape)  # node mass (kg)
         self.grid_v = ti.Vector.field(3, real, shape=self.grid_shape)  # node momentum, then velocity
 
-        # NaN / infinity watch: which field (1 x, 2 v, 3 F) and the first particle found
+        # NaN / infinity watch: which fields (bits 1 x, 2 v, 4 F) and the first particle found
         self.bad_field = ti.field(ti.i32, shape=())
         self.bad_particle = ti.field(ti.i32, shape=())
 
@@ -202,19 +202,19 @@ class MPMSolver:
 
     @ti.kernel
     def find_nonfinite(self):
-        """Record the first field (1 x, 2 v, 3 F) and a particle whose value is NaN or infinite."""
+        """Flag the fields holding a NaN or infinity (bits: 1 x, 2 v, 4 F) and the first such particle."""
         self.bad_field[None] = 0
         self.bad_particle[None] = self.n_particles
         for p in self.x:
-            code = 0
+            bits = 0
             if not (ti.abs(self.x[p]).max() < 1e30):
-                code = 1
-            elif not (ti.abs(self.v[p]).max() < 1e30):
-                code = 2
-            elif not (ti.abs(self.F[p]).max() < 1e30):
-                code = 3
-            if code > 0:
-                ti.atomic_max(self.bad_field[None], code)
+                bits |= 1
+            if not (ti.abs(self.v[p]).max() < 1e30):
+                bits |= 2
+            if not (ti.abs(self.F[p]).max() < 1e30):
+                bits |= 4
+            if bits > 0:
+                ti.atomic_or(self.bad_field[None], bits)
                 ti.atomic_min(self.bad_particle[None], p)
 
     @ti.kernel

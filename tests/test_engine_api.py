@@ -1,0 +1,140 @@
+"""The engine's public API: initialisation, scene validation, state round trips, errors that say what to do."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fluidlab_core as fl
+from fluidlab_core import materials as M
+from fluidlab_core.simulator import NonFiniteStateError
+
+
+def _small_scene(**kwargs):
+    kwargs = {"dt": 1e-3, "substeps": 10, **kwargs}
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=16, **kwargs)
+    water = scene.add_particles(fl.Box((0.02, 0.02, 0.0), (0.08, 0.08, 0.05)), M.WATER, name="water")
+    return scene, water
+
+
+def test_import_does_no_work():
+    """Importing the package neither imports Taichi nor initialises anything."""
+    code = ("import sys, fluidlab_core; from fluidlab_core import runtime; "
+            "assert 'taichi' not in sys.modules, 'taichi imported'; assert runtime.current() is None; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+def test_init_is_idempotent_and_validates():
+    first = fl.init(arch="cpu", precision="f32", seed=0)
+    assert fl.init(arch="cpu", precision="f32", seed=0) is first
+    with pytest.raises(ValueError, match="arch must be one of"):
+        fl.init(arch="tpu")
+    with pytest.raises(ValueError, match="precision must be one of"):
+        fl.init(precision="f16")
+
+
+def test_particle_mass_and_volume_follow_the_sampling_density():
+    """Mass = ρ × shape volume for shapes that fit the lattice; curved shapes within a few percent."""
+    scene, water = _small_scene(substeps=25)
+    sphere = scene.add_particles(fl.Sphere((0.05, 0.05, 0.08), 0.015), M.ELASTIC, name="ball")
+    sim = scene.build()
+    box_volume = 0.06 * 0.06 * 0.05
+    assert sim.masses("water").sum() == pytest.approx(M.WATER.density * box_volume, rel=1e-4)
+    assert sim.volumes("water").sum() == pytest.approx(box_volume, rel=1e-4)
+    ball_volume = 4 / 3 * np.pi * 0.015 ** 3
+    assert sim.masses(sphere).sum() == pytest.approx(M.ELASTIC.density * ball_volume, rel=0.06)
+    assert sim.positions("water").shape == (water.count, 3)
+
+
+def test_state_round_trip_is_exact():
+    scene, _ = _small_scene()
+    sim = scene.build()
+    sim.step(n=5)
+    state = sim.get_state()
+    sim.step(n=5)
+    after = sim.positions("water")
+    sim.set_state(state)
+    again = sim.get_state()
+    for key in ("x", "v", "C", "F"):
+        np.testing.assert_array_equal(again[key], state[key])
+    assert sim.step_count == 5
+    sim.step(n=5)
+    # parallel float atomics may add in another order: equal to float32 round-off, not bit for bit
+    np.testing.assert_allclose(sim.positions("water"), after, atol=1e-6)
+    with pytest.raises(ValueError, match="rows"):
+        sim.set_state({"x": state["x"][:3], "v": state["v"], "C": state["C"], "F": state["F"]})
+
+
+def test_unstable_time_step_is_refused_with_the_numbers_and_the_fix():
+    scene, _ = _small_scene(dt=2e-3, substeps=2)
+    with pytest.raises(fl.UnstableTimeStepError) as err:
+        scene.build()
+    message = str(err.value)
+    assert "CFL" in message and "water" in message and "substeps >=" in message
+    need = int(message.split("substeps >= ")[1].split()[0])
+    fixed, _ = _small_scene(dt=2e-3, substeps=need)
+    fixed.check()  # the suggested substep count is accepted
+
+
+def test_viscous_limit_is_refused():
+    honey = M.ViscousLiquid("very_viscous", density=1000.0, viscosity_pas=2000.0)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=16, dt=2e-3, substeps=40)
+    scene.add_particles(fl.Box((0.02, 0.02, 0.0), (0.08, 0.08, 0.05)), honey)
+    with pytest.raises(fl.UnstableTimeStepError, match="viscous limit"):
+        scene.build()
+
+
+def test_bad_scene_inputs_name_the_problem():
+    with pytest.raises(ValueError, match="lower < upper"):
+        fl.Scene(lower=(0, 0, 0), upper=(0.1, -0.1, 0.1))
+    with pytest.raises(ValueError, match="dt must be"):
+        fl.Scene(dt=-1.0)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=16)
+    with pytest.raises(ValueError, match="outside the domain"):
+        scene.add_particles(fl.Box((0.05, 0.05, 0.05), (0.2, 0.08, 0.08)), M.WATER)
+    with pytest.raises(ValueError, match="no particle"):
+        scene.add_particles(fl.Sphere((0.05, 0.05, 0.05), 1e-4), M.WATER)
+    with pytest.raises(ValueError, match="container"):
+        scene.add_particles(fl.Cup((0.05, 0.05, 0.0), 0.03, 0.05, 0.01), M.WATER)
+    with pytest.raises(ValueError, match="no particles"):
+        scene.build()
+    with pytest.raises(ValueError, match="positive"):
+        M.NewtonianLiquid("bad", density=-1.0)
+    with pytest.raises(KeyError, match="known: "):
+        M.get("lava")
+
+
+def test_thin_container_walls_are_refused():
+    scene, _ = _small_scene()
+    dx = scene.dx
+    scene.add_static(fl.Cup((0.05, 0.05, 0.0), 0.045, 0.08, wall_thickness=1.5 * dx))
+    with pytest.raises(ValueError, match="2 grid cells"):
+        scene.build()
+
+
+def test_nan_raises_an_error_naming_field_and_step():
+    scene, _ = _small_scene()
+    sim = scene.build()
+    sim.step(n=2)
+    state = sim.get_state()
+    state["v"][7] = np.nan
+    sim.set_state(state)
+    with pytest.raises(NonFiniteStateError) as err:
+        sim.step()
+    message = str(err.value)
+    assert "velocities (v)" in message and "step 3" in message and "'water'" in message
+
+
+def test_catalogue_follows_the_paper_similarity():
+    """λ = 277.78 paper units → 2.7778e5 Pa; μ 416.67 → 4.1667e5 Pa; densities scale by 1000 kg/m³."""
+    assert M.WATER.lam == pytest.approx(277.78 * 1000.0)
+    assert M.ELASTIC.mu == pytest.approx(416.67 * 1000.0)
+    assert M.WATER.mu == 0.0
+    assert M.MILK.density / M.COFFEE.density == pytest.approx(0.5)
+    mu, lam = M.lame_from_young(1000.0, 0.2)
+    assert (mu, lam) == pytest.approx((416.667, 277.778), rel=1e-5)
+    for name in ("water", "milk", "coffee", "frothed_milk", "ice_cream", "elastic", "plastic", "rigid",
+                 "light_liquid", "heavy_liquid"):
+        assert M.get(name).name == name
