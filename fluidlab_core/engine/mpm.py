@@ -7,7 +7,8 @@ One substep of length Δt (Hu et al. 2018, "A moving least squares material poin
                    A_p = −Δt V⁰_p (4/Δx²) τ_p + m_p C_p
                    m_i += w_ip m_p,  (mv)_i += w_ip (m_p v_p + A_p (x_i − x_p))
     grid update    v_i = (mv)_i / m_i + Δt g; static colliders (statics.py); domain walls (slip)
-    G2P            v_p = Σ w_ip v_i,  C_p = (4/Δx²) Σ w_ip v_i (x_i − x_p)ᵀ,  x_p ← x_p + Δt v_p
+    G2P            v_p = Σ w_ip v_i,  C_p = (4/Δx²) Σ w_ip v_i (x_i − x_p)ᵀ,  x_p ← x_p + Δt v_p;
+                   particles inside a static or past a wall are put back on its surface
     rigid          rigid bodies projected to their best rigid motion (rigid.py)
 
 Units are SI throughout (m, s, kg, Pa). The grid covers the domain [lower, upper] plus `PAD` cells on every
@@ -44,7 +45,7 @@ class SolverSpec:
     body_index: np.ndarray  # (N,) rigid body index or -1
     rest_volume: np.ndarray  # (N,) m³
     materials: list  # Material objects
-    colliders: list  # Taichi functions (x, v) -> v, from statics.make_collider
+    colliders: list  # statics.Collider objects
 
 
 @ti.data_oriented
@@ -161,7 +162,7 @@ class MPMSolver:
                 vn = self.grid_v[I] / m + dt * ti.Vector(self.gravity)
                 xn = ti.Vector(self.origin) + I * dx
                 for k in ti.static(range(len(self.spec.colliders))):
-                    vn = self.spec.colliders[k](xn, vn)
+                    vn = self.spec.colliders[k].grid(xn, vn)
                 vn = self._walls(xn, vn)
                 self.grid_v[I] = vn
         # G2P
@@ -175,12 +176,20 @@ class MPMSolver:
                 g_v = self.grid_v[base + offset]
                 new_v += weight * g_v
                 new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
+            xp = self.x[p] + dt * new_v
+            # statics: particles found inside are put back on the surface
+            for k in ti.static(range(len(self.spec.colliders))):
+                xp, new_v = self.spec.colliders[k].particle(xp, new_v)
+            # domain walls: the same for particles past a wall
+            for d in ti.static(range(3)):
+                if xp[d] < self.lower[d]:
+                    xp[d] = self.lower[d]
+                    new_v[d] = ti.max(new_v[d], 0.0)
+                elif xp[d] > self.upper[d]:
+                    xp[d] = self.upper[d]
+                    new_v[d] = ti.min(new_v[d], 0.0)
             self.v[p] = new_v
             self.C[p] = new_C
-            xp = self.x[p] + dt * new_v
-            # keep particles on the grid whatever happens (a wall stops them well before this)
-            for d in ti.static(range(3)):
-                xp[d] = ti.min(ti.max(xp[d], self.lower[d] - dx), self.upper[d] + dx)
             self.x[p] = xp
 
     @ti.func

@@ -11,9 +11,14 @@ Boundary condition at a grid node with φ < 0 (inside the collider), velocity v 
                       v_t = v − vₙ n,  v ← v_t · max(0, 1 + μ vₙ / |v_t|)     (Coulomb friction, μ ≥ 0)
     separating velocities (vₙ ≥ 0) are left alone.
 
-No-leak rule: a wall stops liquid when at least two grid nodes lie inside it along its normal, so every
-particle's 3×3×3 stencil meets a node that removes the inward velocity. Walls thinner than
-`MIN_WALL_CELLS`·Δx are refused when the scene is built.
+Particle projection after G2P: a particle found inside (φ(x_p) < 0) is moved back to the surface,
+x_p ← x_p − φ n, and loses its inward normal velocity.
+
+No-leak rule: walls must be at least `MIN_WALL_CELLS` = 2 grid cells thick. The grid condition alone lets
+particles creep through thin walls: past a wall's mid-plane the SDF normal points out of the far side, so
+nodes there let particles leave. The particle projection stops that as long as no particle crosses the
+mid-plane in one substep; the CFL limit keeps a substep's motion under half a cell, so a wall of two cells
+(mid-plane one cell deep) holds. Thinner walls are refused when the scene is built.
 """
 from __future__ import annotations
 
@@ -114,27 +119,44 @@ def sdf_func(shape, real, mesh_spacing: float):
     raise TypeError(f"no static collider for shape type {type(shape).__name__}")
 
 
-def make_collider(sdf, friction: float, sticky: bool, h: float):
-    """The boundary condition above as a Taichi function (x node position, v node velocity) -> v."""
+class Collider:
+    """A static collider's two Taichi hooks: `grid(x, v) -> v` at grid nodes and `particle(x, v) -> (x, v)`
+    after G2P (see the module docstring)."""
 
-    @ti.func
-    def collide(x, v):
-        phi = sdf(x)
-        if phi < 0.0:
-            if ti.static(sticky):
-                v = ti.Vector.zero(float, 3)
-            else:
-                grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
-                                  for d in ti.static(range(3))])
-                n = grad / (grad.norm() + 1e-12)
+    def __init__(self, sdf, friction: float, sticky: bool, h: float):
+        @ti.func
+        def normal(x):
+            grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
+                              for d in ti.static(range(3))])
+            return grad / (grad.norm() + 1e-12)
+
+        @ti.func
+        def grid(x, v):
+            if sdf(x) < 0.0:
+                if ti.static(sticky):
+                    v = ti.Vector.zero(float, 3)
+                else:
+                    n = normal(x)
+                    vn = v.dot(n)
+                    if vn < 0.0:
+                        vt = v - vn * n
+                        vt_norm = vt.norm()
+                        scale = 0.0
+                        if vt_norm > 1e-12:
+                            scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)
+                        v = vt * scale
+            return v
+
+        @ti.func
+        def particle(x, v):
+            phi = sdf(x)
+            if phi < 0.0:
+                n = normal(x)
+                x -= phi * n
                 vn = v.dot(n)
                 if vn < 0.0:
-                    vt = v - vn * n
-                    vt_norm = vt.norm()
-                    scale = 0.0
-                    if vt_norm > 1e-12:
-                        scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)
-                    v = vt * scale
-        return v
+                    v -= vn * n
+            return x, v
 
-    return collide
+        self.grid = grid
+        self.particle = particle
