@@ -97,14 +97,24 @@ class Elastic(Material):
 
 
 @dataclass(frozen=True)
-class Rigid(Elastic):
-    """A rigid body made of particles: stiff fixed-corotated elasticity, then projected every substep to
-    the best rigid motion of its body (shape matching, Müller et al. 2005). Each `add_particles` call with a
-    rigid material makes one body."""
+class Rigid(Material):
+    """A rigid body made of particles, projected every substep to the best rigid motion of its body (shape
+    matching, Müller et al. 2005); each `add_particles` call with a rigid material makes one body.
 
-    shear_modulus: float = 4.1667e5
-    model: ClassVar[str] = "fixed_corotated"
+    Between projections the body responds elastically to compression only: Kirchhoff stress
+    τ = λ J (J − 1) I with J the volume change the grid flow imposes (bulk_modulus λ in Pa). That pressure is
+    what keeps liquid out of the body; shear stiffness would be projected away and only tighten the time
+    step, so there is none. The stability check uses the body's wave speed sqrt(λ/ρ)."""
+
+    bulk_modulus: float = 2.7778e5
+    model: ClassVar[str] = "rigid"
     is_rigid: ClassVar[bool] = True
+
+    def __post_init__(self):
+        _check_positive(self, density=self.density, bulk_modulus=self.bulk_modulus)
+
+    def kernel_params(self):
+        return (0.0, self.bulk_modulus, 0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -204,11 +214,10 @@ PLASTIC = Plastic("plastic", density=1000.0, shear_modulus=_MU_SOFT, lame_lambda
                   yield_stretch=3e-3, color=(0.55, 0.8, 0.35))
 PLASTIC_VON_MISES = VonMisesPlastic("plastic_von_mises", density=1000.0, shear_modulus=_MU_SOFT,
                                     lame_lambda=_LAMBDA, yield_stress=1.0e3, color=(0.45, 0.7, 0.3))
-RIGID = Rigid("rigid", density=1000.0, shear_modulus=_MU_STIFF, lame_lambda=_LAMBDA, color=(0.85, 0.65, 0.3))
-RIGID_LIGHT = Rigid("rigid_light", density=500.0, shear_modulus=_MU_STIFF, lame_lambda=_LAMBDA,
-                    color=(0.95, 0.8, 0.4))
-RIGID_HEAVY = Rigid("rigid_heavy", density=10000.0, shear_modulus=_MU_STIFF, lame_lambda=_LAMBDA,
-                    color=(0.4, 0.4, 0.45))
+# Paper: rigid bodies with ρ = 1, 0.5 (light) and 10 (heavy), λ = 277.78.
+RIGID = Rigid("rigid", density=1000.0, bulk_modulus=_LAMBDA, color=(0.85, 0.65, 0.3))
+RIGID_LIGHT = Rigid("rigid_light", density=500.0, bulk_modulus=_LAMBDA, color=(0.95, 0.8, 0.4))
+RIGID_HEAVY = Rigid("rigid_heavy", density=10000.0, bulk_modulus=_LAMBDA, color=(0.4, 0.4, 0.45))
 
 CATALOGUE: dict[str, Material] = {m.name: m for m in (
     WATER, MILK, COFFEE, FROTHED_MILK, LIGHT_LIQUID, HEAVY_LIQUID, ICE_CREAM, ELASTIC, PLASTIC,

@@ -15,8 +15,7 @@ Stability is checked at build. The explicit solver needs, for the substep Δt = 
     Δt ≤ ρ Δx² / (6 η)                     for each viscous material (explicit diffusion)
 with cfl = 0.5 and v_max the fastest expected speed (`max_speed`, default: the initial speeds plus the
 free-fall speed sqrt(2 g H) over the domain height H). A scene that breaks either is refused with the
-numbers and the substep count that would satisfy it. Rigid materials do not enter c_max: their strain is
-reset every substep.
+numbers and the substep count that would satisfy it.
 """
 from __future__ import annotations
 
@@ -130,8 +129,12 @@ class Scene:
         s = float(spacing) if spacing else self.particle_spacing
         points = shape.sample(s, rng=self.rng, jitter=jitter)
         cell = shape.cell_volume(s)
-        if len(points) == 0 or shape.volume() < 0.5 * cell:
-            raise ValueError(f"{name!r}: the shape ({shape.volume():.3g} m³) holds no particle at spacing {s:.4g} m; "
+        try:
+            volume = shape.volume()
+        except NotImplementedError:  # a user-defined shape may not know its volume
+            volume = len(points) * cell
+        if len(points) == 0 or volume < 0.5 * cell:
+            raise ValueError(f"{name!r}: the shape ({volume:.3g} m³) holds no particle at spacing {s:.4g} m; "
                              f"make it larger or the spacing smaller")
         lo, hi = points.min(axis=0), points.max(axis=0)
         if np.any(lo < self.lower) or np.any(hi > self.upper):
@@ -168,10 +171,7 @@ class Scene:
             v0 = max((float(np.linalg.norm(b.velocity, axis=1).max()) for b in self.bodies), default=0.0)
             height = float(self.upper[2] - self.lower[2])
             v_max = v0 + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
-        # Rigid bodies are left out: their strain is reset to a rotation every substep, so their stiffness does
-        # not accumulate stress and the projection removes every non-rigid velocity.
-        deformable = [m for m in mats.values() if not m.is_rigid]
-        stiffest = max(deformable, key=lambda m: m.wave_speed(), default=None)
+        stiffest = max(mats.values(), key=lambda m: m.wave_speed(), default=None)
         c = stiffest.wave_speed() if stiffest else 0.0
         limits = {"dx": self.dx, "v_max": v_max, "wave_speed": c,
                   "stiffest": stiffest.name if stiffest else None,

@@ -28,6 +28,7 @@ class Simulator:
         self._config = config
         self.step_count = 0
         self.check_finite_every = 1  # steps between NaN checks (0: never)
+        self._static_layers = None  # sampled statics for pictures, made on first render
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -113,6 +114,24 @@ class Simulator:
     def masses(self, h=None) -> np.ndarray:
         return self._rows(self.solver.mass, h)
 
+    # --- pictures ---------------------------------------------------------------------------------------
+    def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None):
+        """A PNG picture of the current state (particles coloured by material, statics in grey, the domain
+        box drawn), written to `path` if given; returns the image as an (H, W, 3) uint8 array. `view` is a
+        name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg)."""
+        from fluidlab_core.render import Layer, render
+
+        if self._static_layers is None:
+            spacing = self.scene.dx
+            self._static_layers = [Layer(_static_points(st.shape, spacing), (0.72, 0.72, 0.74), st.name)
+                                   for st in self.scene.statics]
+        layers = [layer for layer in self._static_layers if len(layer.points)]
+        x = self.positions()
+        for h in self.handles.values():
+            if bodies is None or h.name in bodies:
+                layers.append(Layer(x[h.slice], h.material.color, h.name))
+        return render(layers, path, view=view, bounds=(self.scene.lower, self.scene.upper), size=size, title=title)
+
     # --- state ------------------------------------------------------------------------------------------
     def get_state(self) -> dict:
         """A copy of the particle state (x, v, C, F as numpy arrays in the solver's precision) and the step."""
@@ -129,3 +148,8 @@ class Simulator:
                 raise ValueError(f"state[{key!r}] has {arr.shape[0]} rows, this scene has {s.n_particles} particles")
             field.from_numpy(arr.astype(s.np_real))
         self.step_count = int(state.get("step", 0))
+
+
+def _static_points(shape, spacing):
+    """Points filling a static shape, for pictures (coarse: one per `spacing`)."""
+    return shape.sample(spacing)

@@ -5,7 +5,8 @@ Notation: F deformation gradient (after the substep update F ← (I + Δt C) F),
 `Material.kernel_params()` (Pa, Pa, model-specific, model-specific, Pa·s). Every model returns Kirchhoff
 stress τ = J σ (Pa), which P2G multiplies by the rest volume V⁰.
 
-- fixed_corotated (elastic, rigid):     τ = 2μ (F − R) Fᵀ + λ J (J − 1) I              [Stomakhin 2012]
+- fixed_corotated (elastic):            τ = 2μ (F − R) Fᵀ + λ J (J − 1) I              [Stomakhin 2012]
+- rigid (between projections):          τ = λ J (J − 1) I; rigid.py keeps F = R J^(1/3)
 - corotated_box_yield (plastic):        Σ ← clamp(Σ, 1 − y1, 1 + y2), F ← U Σ Vᵀ, then fixed-corotated
                                                                                         [Stomakhin 2013]
 - von_mises (ice cream, plasticine):    ε = ln Σ, ε̂ = dev ε; if |ε̂| > sqrt(2/3)·σ_y/(2μ) project ε̂ onto
@@ -85,7 +86,15 @@ def viscous_liquid(F, C, prm):
     return Fp, tau
 
 
+@ti.func
+def rigid(F, C, prm):
+    """Rigid body particle: F is set by the rigid projection; only its volume change is resisted."""
+    J = F.determinant()
+    return F, ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+
+
 MODELS = {
+    "rigid": rigid,
     "fixed_corotated": fixed_corotated,
     "corotated_box_yield": corotated_box_yield,
     "von_mises": von_mises,

@@ -124,6 +124,9 @@ class MPMSolver:
         """Base node and quadratic B-spline weights of a particle (Hu 2018, eq. 3)."""
         Xp = (xp - ti.Vector(self.origin)) * self.inv_dx
         base = ti.cast(Xp - 0.5, ti.i32)
+        # never index off the grid, even for a NaN position (the NaN check then reports it)
+        for d in ti.static(range(3)):
+            base[d] = ti.min(ti.max(base[d], 0), self.grid_shape[d] - 3)
         fx = Xp - base
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         return base, fx, w

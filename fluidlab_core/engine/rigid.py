@@ -5,9 +5,14 @@ are replaced by the rigid motion closest to what the MPM step produced (Müller 
     c = Σ m x / M,  v_c = Σ m v / M                      (linear momentum kept)
     A = Σ m (x − c) qᵀ,  R = polar(A)                    (best rotation)
     L = Σ m (x − c) × v,  I = Σ m (|r|² 1 − r rᵀ), r = R q,  ω = I⁻¹ L   (angular momentum kept)
-    x ← c + R q,  v ← v_c + ω × r,  C ← [ω]×,  F ← R·(det F)^(1/3)
-Keeping the volumetric part of F (as the liquid model does) gives a body pressure λ J (J − 1) where the
-grid flow compresses it: without it, liquid particles drift into a rigid body, which then sinks.
+    J ← J (1 + Δt tr C_grid),  x ← c + R q,  v ← v_c + ω × r,  C ← [ω]×,  F ← R J^(1/3)
+J tracks the volume change the grid flow imposes on the body (tr C = div v, taken before C is replaced):
+the body then resists compression with the pressure λ J (J − 1), as a liquid does. Without it, liquid
+particles drift into a rigid body, which then sinks.
+
+Known limitation: liquid still seeps slowly into a floating body (liquid particles follow the grid velocity,
+body particles the rigid one): in the buoyancy test about 10 % of a block's volume in 1.5 s, which lowers it
+by a third of a cell. Excluding other particles with the body's own SDF (as tools will) is the remedy.
 Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
 conserves momentum.
 """
@@ -90,7 +95,9 @@ class RigidBodies:
                 r = R @ self.rest_offset[p]
                 s.x[p] = self.com[b] + r
                 s.v[p] = self.momentum[b] / self.mass[b] + omega.cross(r)
+                # volume change from the grid flow (tr C = div v, before C is replaced below): a body that the
+                # flow compresses pushes back, which keeps liquid particles out of it
+                J = s.F[p].determinant() * (1.0 + s.dt * s.C[p].trace())
+                J = ti.min(ti.max(J, 0.5), 2.0)
+                s.F[p] = R * ti.pow(J, 1.0 / 3.0)
                 s.C[p] = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
-                # keep the volume change: it gives the body a pressure that pushes intruding particles out
-                J = s.F[p].determinant()
-                s.F[p] = R * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0)
