@@ -1,7 +1,7 @@
 """The demo scene the README's first command runs: a water column collapses in a tank around a floating
 block while an elastic ball and a lump of plastic drop into it. Written as PNG frames.
 
-Sizes: "small" (default; about 20k particles on a 40-cell grid, a minute or two on a laptop CPU) and
+Sizes: "small" (default; about 30k particles on a 40-cell grid, a minute or two on a laptop CPU) and
 "paper" (64-cell grid, about 8 particles per cell).
 """
 from __future__ import annotations
@@ -27,9 +27,9 @@ def build_scene(size: str = "small", seed: int = 0) -> Scene:
     scene.add_static(tank, friction=0.2, name="tank")
     inner = tank.interior(0.06)
     lo, hi = inner.lower, inner.upper
-    scene.add_particles(Box(lo, (lo[0] + 0.12, hi[1], lo[2] + 0.16)), M.WATER, name="water_column")
-    scene.add_particles(Box((lo[0] + 0.12, lo[1], lo[2]), (hi[0], hi[1], lo[2] + 0.04)), M.WATER, name="water_layer")
-    scene.add_particles(Box((0.60, -0.03, lo[2] + 0.045), (0.66, 0.03, lo[2] + 0.075)), M.RIGID_LIGHT, name="block")
+    scene.add_particles(Box(lo, (lo[0] + 0.10, hi[1], lo[2] + 0.12)), M.WATER, name="water_column")
+    scene.add_particles(Box((lo[0] + 0.10, lo[1], lo[2]), (hi[0], hi[1], lo[2] + 0.03)), M.WATER, name="water_layer")
+    scene.add_particles(Box((0.60, -0.03, lo[2] + 0.035), (0.66, 0.03, lo[2] + 0.065)), M.RIGID_LIGHT, name="block")
     scene.add_particles(Sphere((0.52, 0.04, 0.20), 0.025), M.ELASTIC, name="ball")
     scene.add_particles(Box((0.60, -0.07, 0.17), (0.64, -0.03, 0.21)), M.PLASTIC, name="plastic")
     return scene

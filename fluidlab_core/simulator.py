@@ -28,7 +28,7 @@ class Simulator:
         self._config = config
         self.step_count = 0
         self.check_finite_every = 1  # steps between NaN checks (0: never)
-        self._static_layers = None  # sampled statics for pictures, made on first render
+        self._static_points = None  # sampled statics for pictures, made on first render
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -116,16 +116,21 @@ class Simulator:
 
     # --- pictures ---------------------------------------------------------------------------------------
     def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None):
-        """A PNG picture of the current state (particles coloured by material, statics in grey, the domain
-        box drawn), written to `path` if given; returns the image as an (H, W, 3) uint8 array. `view` is a
+        """A PNG picture of the current state (particles coloured by material, statics in grey and cut away on
+        the camera's side, the domain box drawn), written to `path` if given; returns the image as an (H, W, 3) uint8 array. `view` is a
         name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg)."""
-        from fluidlab_core.render import Layer, render
+        from fluidlab_core.render import Layer, render, view_axes
 
-        if self._static_layers is None:
-            spacing = self.scene.dx
-            self._static_layers = [Layer(_static_points(st.shape, spacing), (0.72, 0.72, 0.74), st.name)
-                                   for st in self.scene.statics]
-        layers = [layer for layer in self._static_layers if len(layer.points)]
+        if self._static_points is None:
+            self._static_points = [_static_points(st.shape, self.scene.dx) for st in self.scene.statics]
+        # cutaway: statics are drawn only behind the domain's centre, so they never hide what is inside them
+        toward = view_axes(view)[2]
+        centre = 0.5 * (self.scene.lower + self.scene.upper)
+        layers = []
+        for st, points in zip(self.scene.statics, self._static_points):
+            behind = points[(points - centre) @ toward < 0.0]
+            if len(behind):
+                layers.append(Layer(behind, (0.72, 0.72, 0.74), st.name))
         x = self.positions()
         for h in self.handles.values():
             if bodies is None or h.name in bodies:
