@@ -1,6 +1,6 @@
 """Forward throughput of the MPM engine, in particle-substeps per second, with peak memory.
 
-Scene (the issue's benchmark): water plus an elastic body in an open tank, 64³ grid over a 0.4 m cube,
+Scene (the issue's benchmark): water plus an elastic body in an open tank, 64³ grid over a 1 m cube (the paper's unit domain),
 8 particles per cell, substep 2e-4 s; the water block is sized for the requested particle count. Each size
 is warmed up (compilation) and then timed over a few steps. When `genesis-world` is importable, the same
 liquid scene runs in Genesis alternately with ours and the ratio is printed.
@@ -19,7 +19,7 @@ from fluidlab_core.scene import Scene
 from fluidlab_core.shapes import Box, Tank
 
 GRID_RES = 64
-DOMAIN = 0.4  # m, cube side
+DOMAIN = 1.0  # m, cube side: the paper's unit cube, Δx = 15.6 mm
 DT, SUBSTEPS = 2e-3, 10
 
 
