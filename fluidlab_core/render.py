@@ -228,28 +228,30 @@ def _radius_px(layer: Layer, camera: _Camera, size: tuple[int, int]) -> float:
     return float(np.clip(AUTO_RADIUS_SPACING * spacing * camera.scale, 1.0, cap))
 
 
-def _disk_offsets(radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Integer pixel offsets that a disk of this radius, centred anywhere in a pixel, can touch."""
-    reach = int(math.ceil(radius_px + 0.5))
-    oy, ox = np.mgrid[-reach : reach + 1, -reach : reach + 1]
-    keep = ox**2 + oy**2 <= (radius_px + 1.5) ** 2
-    return ox[keep].astype(np.int64), oy[keep].astype(np.int64)
-
-
 def _rasterise(u, v, radius, rank, width: int, height: int, best: np.ndarray) -> None:
-    """For every pixel a disk covers, keep in `best` the largest depth rank (nearest particle) seen so far."""
-    ox, oy = _disk_offsets(float(radius.max()))
-    chunk = max(1, CHUNK_CANDIDATES // len(ox))
+    """For every pixel a disk covers, keep in `best` the largest depth rank (nearest particle) seen so far.
+
+    A disk centred in pixel (i, j) reaches pixels i ± ceil(r + 0.5); the squared distances from the centre
+    to pixel centres are separable (du² + dv²), so they are built per axis and summed by broadcasting.
+    """
+    reach = int(math.ceil(float(radius.max()) + 0.5))
+    offsets = np.arange(-reach, reach + 1, dtype=np.int32)
+    span = len(offsets)
+    chunk = max(1, CHUNK_CANDIDATES // (span * span))
     for start in range(0, len(u), chunk):
-        cu, cv, cr = u[start : start + chunk], v[start : start + chunk], radius[start : start + chunk]
-        ck = rank[start : start + chunk]
-        px = np.floor(cu).astype(np.int64)[:, None] + ox
-        py = np.floor(cv).astype(np.int64)[:, None] + oy
-        du, dv = px + 0.5 - cu[:, None], py + 0.5 - cv[:, None]
-        hit = (du * du + dv * dv <= (cr * cr)[:, None]) & (px >= 0) & (px < width) & (py >= 0) & (py < height)
-        pixel = (py * width + px)[hit]
-        if pixel.size:
-            np.maximum.at(best, pixel, np.broadcast_to(ck[:, None], hit.shape)[hit])
+        cu, cv = u[start : start + chunk], v[start : start + chunk]
+        px = np.floor(cu).astype(np.int32)[:, None] + offsets  # (M, span) pixel columns
+        py = np.floor(cv).astype(np.int32)[:, None] + offsets  # (M, span) pixel rows
+        du2 = np.square((px + 0.5 - cu[:, None]).astype(np.float32))
+        dv2 = np.square((py + 0.5 - cv[:, None]).astype(np.float32))
+        du2[(px < 0) | (px >= width)] = np.inf  # off-image pixels never hit
+        dv2[(py < 0) | (py >= height)] = np.inf
+        r2 = np.square(radius[start : start + chunk].astype(np.float32))
+        hit = dv2[:, :, None] + du2[:, None, :] <= r2[:, None, None]  # (M, span, span)
+        i, a, b = np.nonzero(hit)
+        if i.size:
+            pixel = py[i, a].astype(np.int64) * width + px[i, b]
+            np.maximum.at(best, pixel, rank[start : start + chunk][i])
 
 
 def _shade(best, u, v, depth, radius, colors, camera_depth_range, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -290,7 +292,7 @@ def _draw_box(draw: ImageDraw.ImageDraw, camera: _Camera, lower, upper, front: b
 
 def _draw_axes(draw: ImageDraw.ImageDraw, camera: _Camera, size: tuple[int, int], ink, font) -> None:
     """Small x/y/z triad (red/green/blue) in the bottom-left corner showing the world axes' directions."""
-    length = max(10.0, 0.06 * min(size))
+    length = max(10.0, 0.045 * min(size))
     origin = (8 + length, size[1] - 8 - length)
     for axis, (name, color) in enumerate((("x", (220, 40, 40)), ("y", (30, 160, 30)), ("z", (40, 70, 220)))):
         e = np.zeros(3)
@@ -386,8 +388,8 @@ def render(
     for r in np.unique(radius):
         sel = radius == r
         _rasterise(u[sel], v[sel], radius[sel], rank[sel], width, height, best)
-    owner_of_rank = order  # rank → particle index
-    best = np.where(best >= 0, owner_of_rank[np.clip(best, 0, None)], -1)
+    covered = best >= 0
+    best[covered] = order[best[covered]]  # rank → particle index
 
     # shade covered pixels
     box_depth = _box_corners(lower, upper) @ camera.toward

@@ -239,4 +239,9 @@ class Scene:
         spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
                           wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
                           body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders)
-        return Simulator(self, MPMSolver(spec, real), handles, config)
+        copies = 0
+        if config.backend == "cpu":
+            import os
+
+            copies = config.cpu_threads or os.cpu_count() or 1
+        return Simulator(self, MPMSolver(spec, real, scatter_copies=copies), handles, config)
