@@ -235,7 +235,7 @@ class Scene:
         body_index = np.concatenate([np.full(h.count, h.body) for h in handles])
         rest_volume = np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies])
         colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
-                                      0.01 * self.dx) for st in self.statics]
+                                      0.01 * self.dx, self.dx) for st in self.statics]
         spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
                           wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
                           body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders)

@@ -6,7 +6,7 @@ interpolation of a cached grid for meshes (`mesh_sdf.mesh_sdf_grid`). The normal
 differences.
 
 Boundary condition at a grid node with φ < 0 (inside the collider), velocity v after the grid update:
-    sticky:           v ← 0
+    sticky:           v ← 0 (for φ < Δx, so that the particles touching the surface stop)
     otherwise, with vₙ = v·n: if vₙ < 0 (moving into the collider)
                       v_t = v − vₙ n,  v ← v_t · max(0, 1 + μ vₙ / |v_t|)     (Coulomb friction, μ ≥ 0)
     separating velocities (vₙ ≥ 0) are left alone.
@@ -123,7 +123,9 @@ class Collider:
     """A static collider's two Taichi hooks: `grid(x, v) -> v` at grid nodes and `particle(x, v) -> (x, v)`
     after G2P (see the module docstring)."""
 
-    def __init__(self, sdf, friction: float, sticky: bool, h: float):
+    def __init__(self, sdf, friction: float, sticky: bool, h: float, dx: float):
+        sticky_band = dx  # sticky statics hold nodes up to a cell outside, so the touching particles stop
+
         @ti.func
         def normal(x):
             grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
@@ -132,19 +134,20 @@ class Collider:
 
         @ti.func
         def grid(x, v):
-            if sdf(x) < 0.0:
-                if ti.static(sticky):
+            phi = sdf(x)
+            if ti.static(sticky):
+                if phi < sticky_band:
                     v = ti.Vector.zero(float, 3)
-                else:
-                    n = normal(x)
-                    vn = v.dot(n)
-                    if vn < 0.0:
-                        vt = v - vn * n
-                        vt_norm = vt.norm()
-                        scale = 0.0
-                        if vt_norm > 1e-12:
-                            scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)
-                        v = vt * scale
+            elif phi < 0.0:
+                n = normal(x)
+                vn = v.dot(n)
+                if vn < 0.0:
+                    vt = v - vn * n
+                    vt_norm = vt.norm()
+                    scale = 0.0
+                    if vt_norm > 1e-12:
+                        scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)
+                    v = vt * scale
             return v
 
         @ti.func
