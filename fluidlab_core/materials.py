@@ -7,18 +7,18 @@ never branches on material names.
 Similarity with the FluidLab paper
 ----------------------------------
 The paper's material table is in unit-cube units: density 1, Lamé λ = 277.78 for every material and
-shear modulus μ = 0 (liquids), 208.33 (elastic) or 416.67 (stiff), with gravity 9.8. We map it to SI by
+shear modulus μ = 0 (liquids), 208.33 or 416.67 (solids), with gravity of about 10. We map it to SI by
 
     1 paper length unit  = 1 m            (L* = 1 m)
     1 paper density unit = 1000 kg/m³     (ρ* = water)
-    gravity              = 9.81 m/s² (the same g, so the Froude number g·T²/L is unchanged)
+    gravity              = 9.81 m/s²      (the paper's g, so the Froude number g·T²/L is unchanged)
 
-hence the time unit is T* = sqrt(L*/g*) / sqrt(1/9.8) = 1 s, velocities map 1:1, and stresses (and Lamé
-constants, yield stresses) scale by ρ*·(L*/T*)² = 1000 Pa; viscosities scale by 1000 Pa·s. Every
-dimensionless group of the paper (Cauchy number ρ g L / λ, density ratios, μ/λ ratios, Reynolds number)
-is the same in our SI scenes at the same size in metres, so behaviour carries over. The liquids are
-weakly compressible: sound speed sqrt(λ/ρ) ≈ 16.7 m/s, far above the 1 m/s flows of the tasks (Mach < 0.1),
-which keeps density changes under 1 % at the depths of a cup or tank.
+hence the time unit is T* = 1 s and velocities map 1:1, while stresses (Lamé constants, yield stresses)
+scale by ρ*·(L*/T*)² = 1000 Pa and viscosities by 1000 Pa·s. Every dimensionless group of the paper
+(Cauchy number ρ g L / λ, density ratios, μ/λ, Reynolds number) is then the same in our SI scenes at the
+same size in metres, so behaviour carries over. The liquids are weakly compressible: sound speed
+sqrt(λ/ρ) ≈ 16.7 m/s for water, far above the ~1 m/s flows of the tasks (Mach < 0.1), which keeps density
+changes under 1 % at the depths of a cup or tank.
 
 Users define their own materials by constructing these classes, e.g.
 ``NewtonianLiquid("honey-ish", density=1400, bulk_modulus=4e5)``.
