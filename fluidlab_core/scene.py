@@ -14,7 +14,7 @@ Stability is checked at build. The explicit solver needs, for the substep Δt = 
     Δt ≤ cfl · Δx / (c_max + v_max)        c_max = max over materials of sqrt((λ + 2μ)/ρ)
     Δt ≤ ρ Δx² / (6 η)                     for each viscous material (explicit diffusion)
 with cfl = 0.5 and v_max the fastest expected speed (`max_speed`, default: the initial speeds plus the
-free-fall speed sqrt(2 g H) over the domain height H). A scene that breaks either is refused with the
+free-fall speed sqrt(2 g H) over the domain height H, or the tools' max_speed if faster). A scene that breaks either is refused with the
 numbers and the substep count that would satisfy it.
 """
 from __future__ import annotations
@@ -106,6 +106,7 @@ class Scene:
         self.rng = np.random.default_rng(seed)
         self.bodies: list[_Body] = []
         self.statics: list[StaticHandle] = []
+        self.tools: list = []  # engine.tools.ToolSpec
         self._n_particles = 0
         self._n_rigid = 0
 
@@ -161,6 +162,44 @@ class Scene:
         self.statics.append(handle)
         return handle
 
+    def add_tool(self, shape: S.Shape, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), name: str | None = None,
+                 friction: float = 0.0, softness: float | None = None, action_mask=(1, 1, 1, 1, 1, 1),
+                 workspace=None, max_speed: float = 1.0):
+        """A kinematic tool moved by `Simulator.step(action)` (see fluidlab_core.engine.tools).
+
+        shape: its geometry in the tool's own frame (m); pose: initial (x, y, z, qx, qy, qz, qw) of the tool
+        frame in the world; friction: Coulomb coefficient; softness: soft contact sharpness in 1/m (None:
+        hard contact); action_mask: which of (vx, vy, vz, wx, wy, wz) the action drives; workspace:
+        ((x, y, z), (x, y, z)) bounds on the tool position; max_speed: fastest tool point (m/s), for the
+        stability check."""
+        from fluidlab_core.engine.tools import ToolSpec
+
+        if not isinstance(shape, S.Shape):
+            raise TypeError(f"shape must be a fluidlab_core.shapes.Shape, got {type(shape).__name__}")
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
+            raise ValueError(f"tool pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, got {pose!r}")
+        mask = np.asarray(action_mask, dtype=bool)
+        if mask.shape != (6,):
+            raise ValueError(f"action_mask must be 6 booleans for (vx, vy, vz, wx, wy, wz), got {action_mask!r}")
+        if softness is not None and not (softness > 0 and math.isfinite(softness)):
+            raise ValueError(f"softness must be a positive number (1/m) or None for hard contact, got {softness!r}")
+        if not (friction >= 0 and math.isfinite(friction)):
+            raise ValueError(f"friction must be a finite number >= 0, got {friction!r}")
+        if workspace is not None:
+            lo, hi = _vec3("workspace lower", workspace[0]), _vec3("workspace upper", workspace[1])
+            if not np.all(lo <= hi) or not np.all((pose[:3] >= lo) & (pose[:3] <= hi)):
+                raise ValueError(f"workspace {tuple(lo)}..{tuple(hi)} must have lower <= upper and contain the "
+                                 f"tool's initial position {tuple(pose[:3])}")
+            workspace = (lo, hi)
+        name = name or f"tool_{len(self.tools)}"
+        if any(t.name == name for t in self.tools):
+            raise ValueError(f"a tool named {name!r} already exists")
+        spec = ToolSpec(name, shape, pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:]), float(friction),
+                        None if softness is None else float(softness), mask, workspace, float(max_speed))
+        self.tools.append(spec)
+        return spec
+
     # --- checks -----------------------------------------------------------------------------------------
     def stability_limits(self) -> dict:
         """The substep limits of the module docstring, with the numbers that set them."""
@@ -170,7 +209,8 @@ class Scene:
         else:
             v0 = max((float(np.linalg.norm(b.velocity, axis=1).max()) for b in self.bodies), default=0.0)
             height = float(self.upper[2] - self.lower[2])
-            v_max = v0 + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
+            v_tools = max((t.max_speed for t in self.tools), default=0.0)
+            v_max = max(v0, v_tools) + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
         stiffest = max(mats.values(), key=lambda m: m.wave_speed(), default=None)
         c = stiffest.wave_speed() if stiffest else 0.0
         limits = {"dx": self.dx, "v_max": v_max, "wave_speed": c,
@@ -236,9 +276,13 @@ class Scene:
         rest_volume = np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies])
         colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
                                       0.01 * self.dx, self.dx) for st in self.statics]
+        from fluidlab_core.engine.tools import Tool
+
+        tools = [Tool(t, real, self.dx) for t in self.tools]
         spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
                           wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
-                          body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders)
+                          body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders,
+                          tools=tools)
         copies = 0
         if config.backend == "cpu":
             import os

@@ -14,7 +14,8 @@ _FIELD_BITS = ((1, "positions (x)"), (2, "velocities (v)"), (4, "deformation gra
 
 
 class Simulator:
-    """Steps an MLS-MPM scene. One `step()` advances dt seconds in `substeps` substeps.
+    """Steps an MLS-MPM scene. One `step(action)` advances dt seconds in `substeps` substeps, moving the tools
+    with the action.
 
     positions(h)/velocities(h) return (N, 3) float64 arrays in the world frame (m, m/s) for a particle
     handle from `Scene.add_particles` (or its name). `get_state()`/`set_state()` round-trip the whole
@@ -22,13 +23,17 @@ class Simulator:
     """
 
     def __init__(self, scene, solver, handles, config):
+        from fluidlab_core.engine.tools import ToolState
+
         self.scene = scene
         self.solver = solver
+        self.tools = ToolState(scene.tools)
         self.handles = {h.name: h for h in handles}
         self._config = config
         self.step_count = 0
         self.check_finite_every = 1  # steps between NaN checks (0: never)
         self._static_points = None  # sampled statics for pictures, made on first render
+        self._tool_points = None  # tool shapes sampled in their own frames, likewise
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -50,19 +55,41 @@ class Simulator:
             raise RuntimeError("this simulator was built before fluidlab_core.init() reset Taichi; build the scene "
                                "again")
 
-    def step(self, action=None, n: int = 1):
-        """Advance `n` steps of dt seconds each. `action` is for tools (none in this scene)."""
-        if action is not None:
-            raise ValueError("this scene has no tools, so step() takes no action")
+    def step(self, action=None, n: int = 1) -> dict:
+        """Advance `n` steps of dt seconds each, holding the tools' velocity `action` over every step.
+
+        action: for one tool a (6,) array (vx, vy, vz, wx, wy, wz) in m/s and rad/s in the world frame; for
+        several an (n_tools, 6) array or a {tool name: (6,)} dict; None keeps tools still. Dimensions outside a
+        tool's action mask are ignored. Returns info: {"clipped": {tool name: True if the workspace clipped
+        its motion in any of these steps}}."""
         self._check_alive()
+        if action is not None and not self.tools.specs:
+            raise ValueError("this scene has no tools, so step() takes no action")
+        velocities = self.tools.parse_action(action)
+        clipped = {spec.name: False for spec in self.tools.specs}
+        sub_dt = self.scene.substep_dt
         for _ in range(n):
+            v_step, hits = self.tools.clip(velocities, self.scene.dt)
+            for spec, hit in zip(self.tools.specs, hits):
+                clipped[spec.name] |= hit
             for _ in range(self.scene.substeps):
+                for i, tool in enumerate(self.solver.spec.tools):
+                    tool.write(self.tools.position[i], self.tools.rotation[i], v_step[i, :3], v_step[i, 3:])
                 self.solver.substep()
                 if self.solver.rigid is not None:
                     self.solver.rigid.project()
+                self.tools.advance(v_step, sub_dt)
             self.step_count += 1
             if self.check_finite_every and self.step_count % self.check_finite_every == 0:
                 self.check_finite()
+        return {"clipped": clipped}
+
+    def tool_pose(self, name: str) -> np.ndarray:
+        """(x, y, z, qx, qy, qz, qw) of a tool's frame in the world (m)."""
+        names = [spec.name for spec in self.tools.specs]
+        if name not in names:
+            raise KeyError(f"no tool named {name!r}; tools: {', '.join(names) or 'none'}")
+        return self.tools.pose(names.index(name))
 
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
@@ -127,6 +154,11 @@ class Simulator:
         toward = view_axes(view)[2]
         centre = 0.5 * (self.scene.lower + self.scene.upper)
         layers = []
+        if self._tool_points is None:
+            self._tool_points = [spec.shape.sample(0.5 * self.scene.dx) for spec in self.tools.specs]
+        for i, (spec, local) in enumerate(zip(self.tools.specs, self._tool_points)):
+            if len(local):
+                layers.append(Layer(local @ self.tools.rotation[i].T + self.tools.position[i], spec.color, spec.name))
         for st, points in zip(self.scene.statics, self._static_points):
             behind = points[(points - centre) @ toward < 0.0]
             if len(behind):
@@ -142,6 +174,7 @@ class Simulator:
         """A copy of the particle state (x, v, C, F as numpy arrays in the solver's precision) and the step."""
         s = self.solver
         return {"x": s.x.to_numpy(), "v": s.v.to_numpy(), "C": s.C.to_numpy(), "F": s.F.to_numpy(),
+                "tool_position": self.tools.position.copy(), "tool_rotation": self.tools.rotation.copy(),
                 "step": self.step_count}
 
     def set_state(self, state: dict):
@@ -152,6 +185,9 @@ class Simulator:
             if arr.ndim == 0 or arr.shape[0] != s.n_particles:
                 raise ValueError(f"state[{key!r}] has {arr.shape[0]} rows, this scene has {s.n_particles} particles")
             field.from_numpy(arr.astype(s.np_real))
+        if "tool_position" in state:
+            self.tools.position[:] = state["tool_position"]
+            self.tools.rotation[:] = state["tool_rotation"]
         self.step_count = int(state.get("step", 0))
 
 

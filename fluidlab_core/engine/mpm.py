@@ -8,7 +8,7 @@ One substep of length Δt (Hu et al. 2018, "A moving least squares material poin
                    m_i += w_ip m_p,  (mv)_i += w_ip (m_p v_p + A_p (x_i − x_p))
                    (on the CPU each thread scatters into a private grid and the grids are summed, which
                    avoids atomic float adds; on a GPU the scatter is atomic)
-    grid update    v_i = (mv)_i / m_i + Δt g; static colliders (statics.py); domain walls (slip)
+    grid update    v_i = (mv)_i / m_i + Δt g; static colliders (statics.py); tools (tools.py); domain walls
     G2P            v_p = Σ w_ip v_i,  C_p = (4/Δx²) Σ w_ip v_i (x_i − x_p)ᵀ,  x_p ← x_p + Δt v_p;
                    particles inside a static or past a wall are put back on its surface
     rigid          rigid bodies projected to their best rigid motion (rigid.py)
@@ -48,6 +48,7 @@ class SolverSpec:
     rest_volume: np.ndarray  # (N,) m³
     materials: list  # Material objects
     colliders: list  # statics.Collider objects
+    tools: list  # tools.Tool objects
 
 
 @ti.data_oriented
@@ -210,6 +211,8 @@ class MPMSolver:
                 xn = ti.Vector(self.origin) + I * dx
                 for k in ti.static(range(len(self.spec.colliders))):
                     vn = self.spec.colliders[k].grid(xn, vn)
+                for k in ti.static(range(len(self.spec.tools))):
+                    vn = self.spec.tools[k].contact(xn, vn)
                 vn = self._walls(xn, vn)
                 self.grid_v[I] = vn
         # G2P
