@@ -64,7 +64,7 @@ class _Body:
     points: np.ndarray  # (n, 3) m
     velocity: np.ndarray  # (n, 3) m/s
     rest_volume: float  # what each particle stands for (m³): the sampling lattice's cell volume
-
+    shape: S.Shape
 
 def _vec3(name, value):
     arr = np.asarray(value, dtype=float)
@@ -147,7 +147,7 @@ class Scene:
             body, self._n_rigid = self._n_rigid, self._n_rigid + 1
         handle = ParticleHandle(name, len(self.bodies), self._n_particles, len(points), material, body)
         self._n_particles += len(points)
-        self.bodies.append(_Body(handle, points, vel, cell))
+        self.bodies.append(_Body(handle, points, vel, cell, shape))
         return handle
 
     def add_static(self, shape: S.Shape, friction: float = 0.5, sticky: bool = False,
@@ -282,7 +282,7 @@ class Scene:
         spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
                           wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
                           body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders,
-                          tools=tools)
+                          tools=tools, body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0])
         copies = 0
         if config.backend == "cpu":
             import os

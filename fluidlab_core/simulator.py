@@ -78,6 +78,8 @@ class Simulator:
                 self.solver.substep()
                 if self.solver.rigid is not None:
                     self.solver.rigid.project()
+                    if self.solver.rigid.sdfs:
+                        self.solver.rigid.exclude()
                 self.tools.advance(v_step, sub_dt)
             self.step_count += 1
             if self.check_finite_every and self.step_count % self.check_finite_every == 0:

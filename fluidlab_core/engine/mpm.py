@@ -49,6 +49,7 @@ class SolverSpec:
     materials: list  # Material objects
     colliders: list  # statics.Collider objects
     tools: list  # tools.Tool objects
+    body_shapes: list  # each rigid body's Shape at rest (world frame), for keeping other particles out
 
 
 @ti.data_oriented
@@ -113,7 +114,7 @@ class MPMSolver:
         self.mass.from_numpy((spec.rest_volume * density[spec.material_index]).astype(np_real))
         self.rigid = None
         if np.any(spec.body_index >= 0):
-            self.rigid = RigidBodies(self, spec.body_index, real)
+            self.rigid = RigidBodies(self, spec.body_index, real, spec.body_shapes, self.dx)
             self.rigid.set_rest(spec.x, spec.rest_volume * density[spec.material_index], spec.body_index)
         self.reset(spec.x, spec.v)
 
