@@ -18,8 +18,12 @@ This one-way push does not act back on b; the grid coupling carries the forces.
 
 Known limitation, measured in the buoyancy set-up (tests/test_physics_solids.py, 7.5 mm cells): floating
 blocks start at Archimedes' depth but sink relative to the surface by about 2.5 mm/s, and the far-field water
-surface drops by about 1 mm/s while they float; without rigid bodies the same water keeps its level. The
-cause is still open (the body's tracked J drifts by ±1.5 %; the contact gap closes).
+surface drops by about 1 mm/s while they float; without rigid bodies the same water keeps its level. In a
+single-block check (800 kg/m³, 7.5 mm cells) an elastic block of the same density floats at exactly
+Archimedes' depth with no drift, while the rigid block sinks at 1.6 mm/s, the same whether F is kept as
+elastic strain or reset as here, and with or without the exclusion step: the projection itself is the
+cause. A likely mechanism: snapping the supported bottom particles to the body's mean (downward) velocity
+pushes them into the liquid every substep, so liquid is squeezed out from under the body. Still open.
 
 Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
 conserves momentum.
