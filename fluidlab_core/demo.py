@@ -32,6 +32,7 @@ def build_scene(size: str = "small", seed: int = 0) -> Scene:
     scene.add_particles(Box((0.60, -0.03, lo[2] + 0.035), (0.66, 0.03, lo[2] + 0.065)), M.RIGID_LIGHT, name="block")
     scene.add_particles(Sphere((0.52, 0.04, 0.20), 0.025), M.ELASTIC, name="ball")
     scene.add_particles(Box((0.60, -0.07, 0.17), (0.64, -0.03, 0.21)), M.PLASTIC, name="plastic")
+    scene.substeps = scene.stable_substeps()  # finer grids need shorter substeps
     return scene
 
 
@@ -42,7 +43,8 @@ def run(out_dir: str | Path = "out/demo", size: str = "small", duration: float =
         raise ValueError("duration must be positive and frames at least 1")
     out = Path(out_dir)
     scene = build_scene(size, seed)
-    log(f"building the demo scene ({size}: grid {scene.grid_res}, dx = {scene.dx * 1000:.1f} mm) ...")
+    log(f"building the demo scene ({size}: grid {scene.grid_res}, dx = {scene.dx * 1000:.1f} mm, "
+        f"{scene.substeps} substeps per {scene.dt * 1000:.0f} ms step) ...")
     t0 = time.perf_counter()
     sim = scene.build()
     log(f"{sim.n_particles} particles; compiled in {time.perf_counter() - t0:.1f} s")

@@ -225,6 +225,10 @@ class Scene:
         limits["max_dt"] = min(limits["cfl_dt"], limits["viscous_dt"])
         return limits
 
+    def stable_substeps(self) -> int:
+        """The fewest substeps per step of dt that pass the stability check for what the scene holds now."""
+        return max(1, math.ceil(self.dt / self.stability_limits()["max_dt"] - 1e-9))
+
     def check(self):
         """Refuse scenes the solver cannot run: unstable substep, walls too thin to hold liquid, nothing in it."""
         if not self.bodies:
