@@ -30,8 +30,10 @@ _generation = 0
 
 
 def _cuda_available(ti) -> bool:
+    from taichi.lang.misc import is_arch_supported
+
     try:
-        return bool(ti.lang.impl.is_arch_supported(ti.cuda))
+        return bool(is_arch_supported(ti.cuda))
     except Exception:  # noqa: BLE001 - any failure to probe means "no CUDA"
         return False
 

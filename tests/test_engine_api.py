@@ -26,6 +26,21 @@ def test_import_does_no_work():
     assert out.stdout.strip() == "ok"
 
 
+def test_auto_backend_probes_cuda_and_cuda_without_a_device_is_refused():
+    """arch="auto" picks CUDA when Taichi finds a device and the CPU otherwise; arch="cuda" on a machine
+    without one fails with a message (separate processes: init resets Taichi)."""
+    code = ("import fluidlab_core, taichi as ti; from taichi.lang.misc import is_arch_supported; "
+            "cfg = fluidlab_core.init(arch='auto'); "
+            "expected = 'cuda' if is_arch_supported(ti.cuda) else 'cpu'; "
+            "assert cfg.backend == expected, (cfg.backend, expected); print(cfg.backend)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.strip() == "cpu":
+        code = "import fluidlab_core; fluidlab_core.init(arch='cuda')"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert out.returncode != 0 and "no CUDA device" in out.stderr
+
+
 def test_init_is_idempotent_and_validates():
     first = fl.init(arch="cpu", precision="f32", seed=0)
     assert fl.init(arch="cpu", precision="f32", seed=0) is first
