@@ -102,7 +102,10 @@ class RigidBodies:
                 self.A[b] += m * r.outer_product(self.rest_offset[p])
                 self.angular_momentum[b] += m * r.cross(s.v[p])
         for b in range(self.n_bodies):
-            R, _ = ti.polar_decompose(self.A[b])
+            # scale A to order one first: its entries are ~ m q² (1e-9 kg m² per particle), where a float32
+            # SVD's absolute tolerances break down
+            A = self.A[b]
+            R, _ = ti.polar_decompose(A / (A.norm() + 1e-30))
             self.rotation[b] = R
         for p in s.x:
             b = self.body[p]
