@@ -27,6 +27,8 @@ class Simulator:
 
         self.scene = scene
         self.solver = solver
+        # fixed at build: the substep length is compiled into the kernels
+        self._dt, self._substeps = scene.dt, scene.substeps
         self.tools = ToolState(scene.tools)
         self.handles = {h.name: h for h in handles}
         self._config = config
@@ -38,12 +40,17 @@ class Simulator:
     # --- stepping ---------------------------------------------------------------------------------------
     @property
     def dt(self) -> float:
-        return self.scene.dt
+        """Seconds per step."""
+        return self._dt
+
+    @property
+    def substeps(self) -> int:
+        return self._substeps
 
     @property
     def time(self) -> float:
         """Simulated time since the start or the last set_state (s)."""
-        return self.step_count * self.scene.dt
+        return self.step_count * self._dt
 
     @property
     def n_particles(self) -> int:
@@ -67,12 +74,12 @@ class Simulator:
             raise ValueError("this scene has no tools, so step() takes no action")
         velocities = self.tools.parse_action(action)
         clipped = {spec.name: False for spec in self.tools.specs}
-        sub_dt = self.scene.substep_dt
+        sub_dt = self._dt / self._substeps
         for _ in range(n):
-            v_step, hits = self.tools.clip(velocities, self.scene.dt)
+            v_step, hits = self.tools.clip(velocities, self._dt)
             for spec, hit in zip(self.tools.specs, hits):
                 clipped[spec.name] |= hit
-            for _ in range(self.scene.substeps):
+            for _ in range(self._substeps):
                 for i, tool in enumerate(self.solver.spec.tools):
                     tool.write(self.tools.position[i], self.tools.rotation[i], v_step[i, :3], v_step[i, 3:])
                 self.solver.substep()
@@ -151,7 +158,7 @@ class Simulator:
         from fluidlab_core.render import Layer, render, view_axes
 
         if self._static_points is None:
-            self._static_points = [_static_points(st.shape, self.scene.dx) for st in self.scene.statics]
+            self._static_points = [st.shape.sample(self.scene.dx) for st in self.scene.statics]
         # cutaway: statics are drawn only behind the domain's centre, so they never hide what is inside them
         toward = view_axes(view)[2]
         centre = 0.5 * (self.scene.lower + self.scene.upper)
@@ -192,7 +199,3 @@ class Simulator:
             self.tools.rotation[:] = state["tool_rotation"]
         self.step_count = int(state.get("step", 0))
 
-
-def _static_points(shape, spacing):
-    """Points filling a static shape, for pictures (coarse: one per `spacing`)."""
-    return shape.sample(spacing)
