@@ -112,3 +112,29 @@ def test_paddle_makes_a_current_that_moves_a_floating_block():
     assert water_momentum > 0.0
     assert moved > 0.002
     assert inside.sum() == 0
+
+
+def test_mesh_tool_with_friction_drags_a_block(tmp_path):
+    """A tool given as a mesh (a flat box exported by trimesh) presses on an elastic block lying on a
+    frictionless floor and slides along +x: with tool friction μ = 1 the block is dragged along, without
+    friction it stays where it is."""
+    import trimesh
+
+    plate = trimesh.creation.box(extents=(0.06, 0.06, 0.012))
+    path = tmp_path / "plate.obj"
+    plate.export(path)
+    moved = {}
+    for friction in (0.0, 1.0):
+        scene = fl.Scene(lower=(0, 0, 0), upper=(0.2, 0.1, 0.1), grid_res=32, dt=1e-3, substeps=20)
+        scene.add_particles(fl.Box((0.05, 0.03, 0.0), (0.09, 0.07, 0.03)), M.Elastic(
+            "soft", density=1000.0, shear_modulus=5e4, lame_lambda=5e4), name="block")
+        scene.add_tool(fl.Mesh(str(path)), pose=(0.07, 0.05, 0.0355, 0, 0, 0, 1), name="plate", friction=friction,
+                       softness=None, max_speed=0.2)
+        sim = scene.build()
+        x0 = sim.positions("block")[:, 0].mean()
+        sim.step(np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0]), n=20)  # press 1 mm into the block
+        sim.step(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]), n=100)  # slide 1 cm
+        moved[friction] = sim.positions("block")[:, 0].mean() - x0
+    report("mesh tool friction", frictionless_m=moved[0.0], friction_1_m=moved[1.0])
+    assert moved[1.0] > 0.005
+    assert abs(moved[0.0]) < 0.2 * moved[1.0]
