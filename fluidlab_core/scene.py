@@ -28,6 +28,7 @@ from fluidlab_core import materials as M
 from fluidlab_core import shapes as S
 
 CFL_NUMBER = 0.5
+MIN_WALL_CELLS = 2.0  # thinnest container wall, in grid cells (see engine/statics.py)
 
 
 class UnstableTimeStepError(ValueError):
@@ -247,7 +248,7 @@ class Scene:
             raise UnstableTimeStepError(
                 f"unstable time step: substep dt/substeps = {self.dt:.3g}/{self.substeps} = {sub:.3g} s exceeds the "
                 f"{why}. Use substeps >= {need} for dt = {self.dt:.3g} s (or a smaller dt, or a coarser grid).")
-        min_wall = 2.0 * self.dx  # statics.MIN_WALL_CELLS, without importing Taichi here
+        min_wall = MIN_WALL_CELLS * self.dx
         for st in self.statics:
             if isinstance(st.shape, (S.Cup, S.Tank)) and st.shape.thinnest_wall() < min_wall - 1e-12:
                 raise ValueError(

@@ -14,7 +14,7 @@ Boundary condition at a grid node with φ < 0 (inside the collider), velocity v 
 Particle projection after G2P: a particle found inside (φ(x_p) < 0) is moved back to the surface,
 x_p ← x_p − φ n, and loses its inward normal velocity.
 
-No-leak rule: walls must be at least `MIN_WALL_CELLS` = 2 grid cells thick. The grid condition alone lets
+No-leak rule: walls must be at least `scene.MIN_WALL_CELLS` = 2 grid cells thick. The grid condition alone lets
 particles creep through thin walls: past a wall's mid-plane the SDF normal points out of the far side, so
 nodes there let particles leave. The particle projection stops that as long as no particle crosses the
 mid-plane in one substep; the CFL limit keeps a substep's motion under half a cell, so a wall of two cells
@@ -27,7 +27,6 @@ import taichi as ti
 
 from fluidlab_core import shapes as S
 
-MIN_WALL_CELLS = 2.0
 
 
 def _box_sdf(lo, hi):

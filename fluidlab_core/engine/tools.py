@@ -19,7 +19,7 @@ through with hard contact; soft contact acts at a distance and holds thin tools.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
@@ -43,7 +43,6 @@ class ToolSpec:
     workspace: tuple[np.ndarray, np.ndarray] | None  # bounds on the tool position (m)
     max_speed: float  # m/s, fastest tool point, for the stability check
     color: tuple[float, float, float] = (0.35, 0.35, 0.4)
-    extra: dict = field(default_factory=dict)
 
 
 @ti.data_oriented
