@@ -62,7 +62,7 @@ class RigidBodies:
             from fluidlab_core.engine import statics
 
             self.sdfs = [statics.sdf_func(shape, real, 0.5 * dx) for shape in shapes]
-        self.h = 0.01 * dx
+            self.normals = [statics.sdf_normal(sdf, 0.01 * dx) for sdf in self.sdfs]
 
     def set_rest(self, x_rest: np.ndarray, mass: np.ndarray, body_index: np.ndarray):
         """Rest offsets q from each body's rest centre of mass (numpy, once at build)."""
@@ -142,9 +142,7 @@ class RigidBodies:
                     xl = R.transpose() @ (xp - c) + self.rest_com[b]
                     phi = self.sdfs[b](xl)
                     if phi < 0.0:
-                        grad = ti.Vector([self.sdfs[b](xl + ti.Vector.unit(3, d) * self.h)
-                                          - self.sdfs[b](xl - ti.Vector.unit(3, d) * self.h) for d in ti.static(range(3))])
-                        n = R @ (grad / (grad.norm() + 1e-12))
+                        n = R @ self.normals[b](xl)
                         xp -= phi * n
                         v_body = self.momentum[b] / self.mass[b] + self.omega[b].cross(xp - c)
                         vn = (vp - v_body).dot(n)

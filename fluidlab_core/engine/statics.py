@@ -118,6 +118,18 @@ def sdf_func(shape, real, mesh_spacing: float):
     raise TypeError(f"no static collider for shape type {type(shape).__name__}")
 
 
+def sdf_normal(sdf, h: float):
+    """n(x) = ∇φ/|∇φ| of a Taichi SDF function by central differences of step h (m)."""
+
+    @ti.func
+    def normal(x):
+        grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
+                          for d in ti.static(range(3))])
+        return grad / (grad.norm() + 1e-12)
+
+    return normal
+
+
 class Collider:
     """A static collider's two Taichi hooks: `grid(x, v) -> v` at grid nodes and `particle(x, v) -> (x, v)`
     after G2P (see the module docstring)."""
@@ -125,11 +137,7 @@ class Collider:
     def __init__(self, sdf, friction: float, sticky: bool, h: float, dx: float):
         sticky_band = dx  # sticky statics hold nodes up to a cell outside, so the touching particles stop
 
-        @ti.func
-        def normal(x):
-            grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
-                              for d in ti.static(range(3))])
-            return grad / (grad.norm() + 1e-12)
+        normal = sdf_normal(sdf, h)
 
         @ti.func
         def grid(x, v):

@@ -56,11 +56,11 @@ class Tool:
         self.linear_velocity = ti.Vector.field(3, real, shape=())  # v (m/s)
         self.angular_velocity = ti.Vector.field(3, real, shape=())  # ω (rad/s)
         self.sdf_local = statics.sdf_func(spec.shape, real, 0.5 * dx)
-        self.h = 0.01 * dx
+        self.normal_local = statics.sdf_normal(self.sdf_local, 0.01 * dx)
         self.contact = self._make_contact()
 
     def _make_contact(self):
-        sdf, h = self.sdf_local, self.h
+        sdf, normal = self.sdf_local, self.normal_local
         friction = self.spec.friction
         hard = self.spec.softness is None
         softness = 0.0 if hard else self.spec.softness
@@ -75,9 +75,7 @@ class Tool:
             xl = R.transpose() @ r
             phi = sdf(xl)
             if phi < reach:
-                grad = ti.Vector([sdf(xl + ti.Vector.unit(3, d) * h) - sdf(xl - ti.Vector.unit(3, d) * h)
-                                  for d in ti.static(range(3))])
-                n = R @ (grad / (grad.norm() + 1e-12))
+                n = R @ normal(xl)
                 u_tool = lin[None] + ang[None].cross(r)
                 rel = u - u_tool
                 un = rel.dot(n)
