@@ -17,7 +17,9 @@ stress τ = J σ (Pa), which P2G multiplies by the rest volume V⁰.
 - viscous_liquid:                       liquid + τ_v = η J (C + Cᵀ − ⅔ tr(C) I) = 2 η J dev(sym ∇v)
 
 The solver unrolls the models present in a scene with `ti.static`, so a scene of liquids never pays for an
-SVD.
+SVD. Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models in `NO_SVD`), so that
+the differentiable solver can compute it in a kernel of its own whose gradient is written by hand
+(svd_grad.py) while the forward solver computes it inline.
 """
 from __future__ import annotations
 
@@ -28,9 +30,8 @@ _MIN_STRETCH = 0.05
 
 
 @ti.func
-def fixed_corotated(F, C, prm):
+def fixed_corotated(F, C, prm, U, sig, V):
     """Elastic: F unchanged, fixed-corotated Kirchhoff stress."""
-    U, sig, V = ti.svd(F)
     R = U @ V.transpose()
     J = F.determinant()
     tau = 2.0 * prm[0] * (F - R) @ F.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
@@ -38,9 +39,8 @@ def fixed_corotated(F, C, prm):
 
 
 @ti.func
-def corotated_box_yield(F, C, prm):
+def corotated_box_yield(F, C, prm, U, sig, V):
     """Plastic: clamp principal stretches to [1 - y1, 1 + y2], then fixed-corotated stress."""
-    U, sig, V = ti.svd(F)
     for d in ti.static(range(3)):
         sig[d, d] = ti.min(ti.max(sig[d, d], 1.0 - prm[2]), 1.0 + prm[3])
     Fp = U @ sig @ V.transpose()
@@ -51,9 +51,8 @@ def corotated_box_yield(F, C, prm):
 
 
 @ti.func
-def von_mises(F, C, prm):
+def von_mises(F, C, prm, U, sig, V):
     """Hencky-strain St. Venant–Kirchhoff with von Mises return mapping (uniaxial yield stress y1)."""
-    U, sig, V = ti.svd(F)
     mu, lam = prm[0], prm[1]
     eps = ti.Vector([ti.log(ti.max(ti.abs(sig[d, d]), _MIN_STRETCH)) for d in ti.static(range(3))])
     eps_hat = eps - eps.sum() / 3.0
@@ -69,7 +68,7 @@ def von_mises(F, C, prm):
 
 
 @ti.func
-def liquid(F, C, prm):
+def liquid(F, C, prm, U, sig, V):
     """Weakly compressible liquid: keep only the volume part of F; pressure from J."""
     J = F.determinant()
     Fp = ti.Matrix.identity(float, 3) * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0)
@@ -78,16 +77,16 @@ def liquid(F, C, prm):
 
 
 @ti.func
-def viscous_liquid(F, C, prm):
+def viscous_liquid(F, C, prm, U, sig, V):
     """Liquid plus deviatoric Newtonian viscous stress."""
-    Fp, tau = liquid(F, C, prm)
+    Fp, tau = liquid(F, C, prm, U, sig, V)
     J = F.determinant()
     tau += prm[4] * J * (C + C.transpose() - (2.0 / 3.0) * C.trace() * ti.Matrix.identity(float, 3))
     return Fp, tau
 
 
 @ti.func
-def rigid(F, C, prm):
+def rigid(F, C, prm, U, sig, V):
     """Rigid body particle: F is set by the rigid projection; only its volume change is resisted."""
     J = F.determinant()
     return F, ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
@@ -101,3 +100,23 @@ MODELS = {
     "liquid": liquid,
     "viscous_liquid": viscous_liquid,
 }
+
+# models whose stress needs no SVD of F (the solvers skip it for them)
+NO_SVD = frozenset({"rigid", "liquid", "viscous_liquid"})
+
+
+def with_svd(name: str):
+    """Model `name` as a function of (F, C, prm) that computes the SVD of F itself when it needs one."""
+    model = MODELS[name]
+    needs_svd = name not in NO_SVD
+
+    @ti.func
+    def func(F, C, prm):
+        U = ti.Matrix.zero(float, 3, 3)
+        sig = ti.Matrix.zero(float, 3, 3)
+        V = ti.Matrix.zero(float, 3, 3)
+        if ti.static(needs_svd):
+            U, sig, V = ti.svd(F)
+        return model(F, C, prm, U, sig, V)
+
+    return func

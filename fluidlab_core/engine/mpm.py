@@ -73,7 +73,7 @@ class MPMSolver:
 
         # models present in the scene, unrolled statically in P2G
         self.model_names = sorted({m.model for m in spec.materials})
-        self.models = [constitutive.MODELS[name] for name in self.model_names]
+        self.models = [constitutive.with_svd(name) for name in self.model_names]
         model_of_material = np.array([self.model_names.index(m.model) for m in spec.materials], dtype=np.int32)
 
         # particle state

@@ -65,18 +65,16 @@ class Tool:
         hard = self.spec.softness is None
         softness = 0.0 if hard else self.spec.softness
         reach = 0.0 if hard else 5.0 / softness
-        position, rotation = self.position, self.rotation
-        lin, ang = self.linear_velocity, self.angular_velocity
 
         @ti.func
-        def contact(x, u):
-            R = rotation[None]
-            r = x - position[None]
+        def contact_at(x, u, p, R, lin, ang):
+            """Grid velocity u at node x after contact with the tool at pose (p, R) moving at (lin, ang)."""
+            r = x - p
             xl = R.transpose() @ r
             phi = sdf(xl)
             if phi < reach:
                 n = R @ normal(xl)
-                u_tool = lin[None] + ang[None].cross(r)
+                u_tool = lin + ang.cross(r)
                 rel = u - u_tool
                 un = rel.dot(n)
                 rel_t = rel - ti.min(un, 0.0) * n
@@ -90,6 +88,14 @@ class Tool:
                 else:
                     u += ti.min(ti.exp(-softness * phi), 1.0) * (u_c - u)
             return u
+
+        self.contact_at = contact_at
+        position, rotation = self.position, self.rotation
+        lin, ang = self.linear_velocity, self.angular_velocity
+
+        @ti.func
+        def contact(x, u):
+            return contact_at(x, u, position[None], rotation[None], lin[None], ang[None])
 
         return contact
 
