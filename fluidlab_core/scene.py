@@ -257,10 +257,13 @@ class Scene:
                     f"{min_wall:.4g} m thick or the grid finer.")
 
     # --- build ------------------------------------------------------------------------------------------
-    def build(self, requires_grad: bool = False):
-        """Allocate the Taichi fields and compile the solver; returns a `Simulator`."""
-        if requires_grad:
-            raise NotImplementedError("differentiable simulation is not available yet: build(requires_grad=False)")
+    def build(self, requires_grad: bool = False, grad_memory: float = 512e6, grad_max_steps: int = 200):
+        """Allocate the Taichi fields and compile the solver; returns a `Simulator`.
+
+        requires_grad: also allocate the differentiable solver, for `Simulator.rollout(..., grad=True)`. Its
+        buffer holds the per-substep state of one checkpoint segment: as many steps as fit in `grad_memory`
+        bytes, at most `grad_max_steps` (segments are about sqrt(N) steps for an N-step rollout, so 200 steps
+        serve horizons up to 40,000 steps at sqrt(N) segments, and any longer one with more segments)."""
         self.check()
         from fluidlab_core import runtime
         from fluidlab_core.engine import statics
@@ -293,4 +296,18 @@ class Scene:
             import os
 
             copies = config.cpu_threads or os.cpu_count() or 1
-        return Simulator(self, MPMSolver(spec, real, scatter_copies=copies), handles, config)
+        solver = MPMSolver(spec, real, scatter_copies=copies)
+        diff = None
+        if requires_grad:
+            from fluidlab_core.engine.diff_mpm import DiffMPMSolver
+
+            real_bytes = np.dtype(runtime.numpy_real()).itemsize
+            # x, v, C, F and their gradients per particle and slot, plus the tools' slot fields
+            slot_bytes = 2 * real_bytes * (24 * len(x) + 24 * max(len(tools), 1))
+            steps = int(min(grad_max_steps, (grad_memory // slot_bytes - 1) // self.substeps))
+            if steps < 1:
+                raise ValueError(f"grad_memory={grad_memory:.3g} bytes holds no whole step of {self.substeps} substeps "
+                                 f"({slot_bytes * (self.substeps + 1):.3g} bytes for {len(x)} particles); raise it")
+            diff = DiffMPMSolver(solver, steps * self.substeps + 1)
+        return Simulator(self, solver, handles, config, diff=diff)
+

@@ -22,11 +22,12 @@ class Simulator:
     particle state exactly.
     """
 
-    def __init__(self, scene, solver, handles, config):
+    def __init__(self, scene, solver, handles, config, diff=None):
         from fluidlab_core.engine.tools import ToolState
 
         self.scene = scene
         self.solver = solver
+        self.diff = diff  # differentiable solver (engine/diff_mpm.py) when built with requires_grad=True
         # fixed at build: the substep length is compiled into the kernels
         self._dt, self._substeps = scene.dt, scene.substeps
         self.tools = ToolState(scene.tools)
@@ -92,6 +93,66 @@ class Simulator:
             if self.check_finite_every and self.step_count % self.check_finite_every == 0:
                 self.check_finite()
         return {"clipped": clipped}
+
+    def rollout(self, actions, loss, grad: bool = False, segment_steps: int | None = None, checkpoint_dir=None,
+                progress=None):
+        """Run len(actions) steps from the current state and return the loss (and its gradients).
+
+        actions: (N, 6) for one tool or (N, n_tools, 6): tool twists per step as in `step` (N ≥ 1); for a scene
+            without tools pass an integer N (steps with no action).
+        loss: a `fluidlab_core.losses.Loss`, evaluated after the steps it names.
+        grad: False runs the fast forward solver; True runs the differentiable solver (build with
+            requires_grad=True) with gradient checkpointing and returns the gradients with respect to every
+            action, the initial tool poses and the initial particle state (see checkpoint.RolloutResult).
+        segment_steps: steps per checkpoint segment (default about sqrt(N), at most the buffer chosen at build).
+        checkpoint_dir: keep segment checkpoints in a private folder under this directory instead of in memory.
+        progress: optional callable(phase, done, total), called once per step of each phase.
+
+        The simulator ends in the rollout's final state, as after the same calls to `step`."""
+        from fluidlab_core.engine.checkpoint import RolloutResult, rollout_with_grad
+        from fluidlab_core.losses import Loss, StepState
+
+        self._check_alive()
+        if not isinstance(loss, Loss):
+            raise TypeError(f"loss must be a fluidlab_core.losses.Loss, got {type(loss).__name__}")
+        velocities = self._action_sequence(actions)
+        n_steps = len(velocities)
+        if grad:
+            if self.diff is None:
+                raise RuntimeError("this simulator was built without gradients: build(requires_grad=True) to "
+                                   "call rollout(..., grad=True)")
+            return rollout_with_grad(self, self.diff, velocities, loss, True, segment_steps, checkpoint_dir, progress)
+        step_losses = np.zeros(n_steps)
+        clipped = np.zeros((n_steps, len(self.tools.specs)), dtype=bool)
+        for g in range(n_steps):
+            info = self.step(velocities[g] if self.tools.specs else None)
+            clipped[g] = [info["clipped"][s.name] for s in self.tools.specs]
+            if loss.active(g + 1, n_steps):
+                state = StepState(g + 1, (g + 1) * self._dt, self.positions(), self.velocities(),
+                                  self.tools.position.copy(), self.tools.rotation.copy())
+                step_losses[g], _ = loss(state, n_steps, grad=False)
+            if progress:
+                progress("forward", g + 1, n_steps)
+        return RolloutResult(float(step_losses.sum()), step_losses, clipped)
+
+    def _action_sequence(self, actions) -> np.ndarray:
+        """(N, n_tools, 6) masked twists from the forms `rollout` accepts."""
+        n_tools = len(self.tools.specs)
+        if isinstance(actions, (int, np.integer)):
+            if actions < 1:
+                raise ValueError(f"a rollout needs at least one step, got {actions}")
+            return np.zeros((int(actions), n_tools, 6))
+        arr = np.asarray(actions, dtype=np.float64)
+        if n_tools == 0:
+            raise ValueError("this scene has no tools: pass the number of steps as actions")
+        if arr.ndim == 2 and n_tools == 1:
+            arr = arr[:, None, :]
+        if arr.ndim != 3 or arr.shape[1:] != (n_tools, 6) or len(arr) < 1:
+            raise ValueError(f"actions must have shape (N, 6) for one tool or (N, {n_tools}, 6), got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            bad = np.argwhere(~np.isfinite(arr))[0]
+            raise ValueError(f"actions contain NaN or infinity (first at step {bad[0]})")
+        return arr * np.array([s.action_mask for s in self.tools.specs], dtype=np.float64)
 
     def tool_pose(self, name: str) -> np.ndarray:
         """(x, y, z, qx, qy, qz, qw) of a tool's frame in the world (m)."""

@@ -56,7 +56,7 @@ def von_mises(F, C, prm, U, sig, V):
     mu, lam = prm[0], prm[1]
     eps = ti.Vector([ti.log(ti.max(ti.abs(sig[d, d]), _MIN_STRETCH)) for d in ti.static(range(3))])
     eps_hat = eps - eps.sum() / 3.0
-    eps_hat_norm = eps_hat.norm() + 1e-20
+    eps_hat_norm = ti.sqrt(eps_hat.dot(eps_hat) + 1e-30)  # finite derivative at 0
     yield_strain = ti.sqrt(2.0 / 3.0) * prm[2] / (2.0 * mu)
     if eps_hat_norm > yield_strain:
         eps -= (1.0 - yield_strain / eps_hat_norm) * eps_hat

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from fluidlab_core.engine import constitutive
+from fluidlab_core.engine import constitutive, statics
 from fluidlab_core.engine.rigid import RigidBodies
 
 PAD = 3  # grid cells outside the domain walls on every side
@@ -255,7 +255,7 @@ class MPMSolver:
                 normal_speed = ti.abs(vn[d])
                 vn[d] = 0.0
                 if ti.static(self.spec.wall_friction > 0.0):
-                    vt_norm = vn.norm()
+                    vt_norm = statics.safe_norm(vn)
                     if vt_norm > 1e-12:
                         vn *= ti.max(0.0, 1.0 - self.spec.wall_friction * normal_speed / vt_norm)
         return vn

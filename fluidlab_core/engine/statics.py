@@ -27,6 +27,16 @@ import taichi as ti
 
 from fluidlab_core import shapes as S
 
+# Added under the square root of every norm that can be exactly zero (inside a box, on a cylinder's axis, a
+# node at rest): d|v|/dv = v/|v| is 0/0 there, and reverse-mode autodiff would turn it into NaN even where
+# the norm's adjoint is zero. It shifts a norm by at most 1e-15 (the unit of the vector).
+NORM_EPS2 = 1e-30
+
+
+@ti.func
+def safe_norm(v):
+    """|v| with a finite derivative at v = 0 (see NORM_EPS2)."""
+    return ti.sqrt(v.dot(v) + NORM_EPS2)
 
 
 def _box_sdf(lo, hi):
@@ -36,7 +46,7 @@ def _box_sdf(lo, hi):
     @ti.func
     def sdf(p):
         q = ti.abs(p - ti.Vector(c)) - ti.Vector(h)
-        return ti.max(q, 0.0).norm() + ti.min(ti.max(q[0], ti.max(q[1], q[2])), 0.0)
+        return safe_norm(ti.max(q, 0.0)) + ti.min(ti.max(q[0], ti.max(q[1], q[2])), 0.0)
 
     return sdf
 
@@ -44,7 +54,7 @@ def _box_sdf(lo, hi):
 def _sphere_sdf(center, radius):
     @ti.func
     def sdf(p):
-        return (p - ti.Vector(center)).norm() - radius
+        return safe_norm(p - ti.Vector(center)) - radius
 
     return sdf
 
@@ -55,8 +65,8 @@ def _cylinder_sdf(center, radius, height):
     @ti.func
     def sdf(p):
         d = p - ti.Vector(center)
-        q = ti.Vector([ti.sqrt(d[0] * d[0] + d[1] * d[1]) - radius, ti.abs(d[2]) - half])
-        return ti.max(q, 0.0).norm() + ti.min(ti.max(q[0], q[1]), 0.0)
+        q = ti.Vector([ti.sqrt(d[0] * d[0] + d[1] * d[1] + NORM_EPS2) - radius, ti.abs(d[2]) - half])
+        return safe_norm(ti.max(q, 0.0)) + ti.min(ti.max(q[0], q[1]), 0.0)
 
     return sdf
 
@@ -87,7 +97,7 @@ class MeshSDF:
             g = (p - ti.Vector(origin)) * inv_h
             # outside the grid: distance to the grid box plus the nearest stored value (conservative)
             gc = ti.Vector([ti.min(ti.max(g[d], 0.0), shape[d] - 1.001) for d in ti.static(range(3))])
-            outside = (g - gc).norm() * h
+            outside = safe_norm(g - gc) * h
             i = ti.cast(ti.floor(gc), ti.i32)
             f = gc - i
             value = 0.0
@@ -125,7 +135,7 @@ def sdf_normal(sdf, h: float):
     def normal(x):
         grad = ti.Vector([sdf(x + ti.Vector.unit(3, d) * h) - sdf(x - ti.Vector.unit(3, d) * h)
                           for d in ti.static(range(3))])
-        return grad / (grad.norm() + 1e-12)
+        return grad / (safe_norm(grad) + 1e-12)
 
     return normal
 
@@ -150,7 +160,7 @@ class Collider:
                 vn = v.dot(n)
                 if vn < 0.0:
                     vt = v - vn * n
-                    vt_norm = vt.norm()
+                    vt_norm = safe_norm(vt)
                     scale = 0.0
                     if vt_norm > 1e-12:
                         scale = ti.max(0.0, 1.0 + friction * vn / vt_norm)

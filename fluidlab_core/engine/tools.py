@@ -79,7 +79,7 @@ class Tool:
                 un = rel.dot(n)
                 rel_t = rel - ti.min(un, 0.0) * n
                 if un < 0.0:
-                    rt = rel_t.norm()
+                    rt = statics.safe_norm(rel_t)
                     if rt > 1e-12:
                         rel_t *= ti.max(0.0, 1.0 + friction * un / rt)
                 u_c = u_tool + rel_t
@@ -147,19 +147,8 @@ class ToolState:
 
     def clip(self, velocities: np.ndarray, dt: float) -> tuple[np.ndarray, list[bool]]:
         """Scale each tool's linear velocity back so that its position stays in its workspace over dt."""
-        clipped = []
-        velocities = velocities.copy()
-        for i, spec in enumerate(self.specs):
-            hit = False
-            if spec.workspace is not None:
-                lo, hi = spec.workspace
-                end = self.position[i] + velocities[i, :3] * dt
-                inside = np.clip(end, lo, hi)
-                if np.any(np.abs(inside - end) > 1e-12):
-                    velocities[i, :3] = (inside - self.position[i]) / dt
-                    hit = True
-            clipped.append(hit)
-        return velocities, clipped
+        out, dims = clip_twists(self.specs, self.position, velocities, dt)
+        return out, [bool(d.any()) for d in dims]
 
     def advance(self, velocities: np.ndarray, dt: float):
         for i in range(len(self.specs)):
@@ -169,3 +158,19 @@ class ToolState:
     def pose(self, i: int) -> np.ndarray:
         """(x, y, z, qx, qy, qz, qw) of tool i."""
         return np.concatenate([self.position[i], Rotation.from_matrix(self.rotation[i]).as_quat()])
+
+
+def clip_twists(specs, position: np.ndarray, twist: np.ndarray, dt: float):
+    """Workspace clipping of one step's twists (n_tools, 6) from tool origins `position` (n_tools, 3): each
+    linear component that would carry the origin past the workspace over dt becomes (bound − p)/dt. Returns
+    the clipped twists and which linear components were clipped (n_tools, 3)."""
+    out = np.array(twist, dtype=np.float64, copy=True)
+    dims = np.zeros((len(specs), 3), dtype=bool)
+    for i, spec in enumerate(specs):
+        if spec.workspace is not None:
+            lo, hi = spec.workspace
+            end = position[i] + out[i, :3] * dt
+            inside = np.clip(end, lo, hi)
+            dims[i] = np.abs(inside - end) > 1e-12
+            out[i, :3] = np.where(dims[i], (inside - position[i]) / dt, out[i, :3])
+    return out, dims

@@ -1,0 +1,236 @@
+"""Checkpointed rollouts: the loss of N steps and its gradient in memory that does not grow with N.
+
+The N steps are split into segments of K steps (K about sqrt(N), at most what the solver's slot buffer holds).
+The forward pass keeps only each segment's start state (in host memory, or on disk), running each segment
+through the buffer. The backward pass goes through the segments last to first: it restores the start
+state, re-runs the segment's forward to fill the buffer, seeds the gradient of the segment's last slot with
+the one handed over from the next segment, and runs the substeps' gradients back to the first slot, whose
+gradient it hands to the previous segment. Device memory is the buffer (K steps); host memory is N/K states.
+
+Workspace clipping (tools.ToolState.clip) is differentiated exactly: a linear-velocity component clipped at
+the workspace boundary b becomes v = (b − p)/dt, so its gradient goes to the tool position p at the step's
+start and none goes to the action.
+"""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fluidlab_core.engine.tools import clip_twists
+from fluidlab_core.losses import StepState
+
+
+class NonFiniteGradientError(FloatingPointError):
+    """A gradient became NaN or infinite during the backward pass."""
+
+
+@dataclass
+class RolloutResult:
+    """Loss of a rollout and, when requested, its gradients (float64 numpy arrays, SI units).
+
+    grad_actions: (N, n_tools, 6) dL/d(vx, vy, vz, wx, wy, wz) per step (zero where the action mask or the
+    workspace clipping leaves an action no effect); grad_tool_position: (n_tools, 3) dL/dp of the initial
+    tool origins; grad_tool_rotation: (n_tools, 3) dL/dθ for an initial rotation R₀ ← exp([θ]×) R₀ (world
+    frame); grad_velocities / grad_positions: (n_particles, 3) dL/dv⁰, dL/dx⁰ of the initial particle state."""
+
+    loss: float
+    step_losses: np.ndarray  # (N,) loss contributed after each step
+    clipped: np.ndarray  # (N, n_tools) workspace clipping per step
+    grad_actions: np.ndarray | None = None
+    grad_tool_position: np.ndarray | None = None
+    grad_tool_rotation: np.ndarray | None = None
+    grad_velocities: np.ndarray | None = None
+    grad_positions: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)  # segments, segment_steps, checkpoint bytes, seconds
+
+
+class CheckpointStore:
+    """Segment start states, in host memory or (with `directory`) as .npz files in a private folder."""
+
+    def __init__(self, directory=None):
+        self.memory: dict[int, dict] = {}
+        self.directory = None
+        self.nbytes = 0
+        if directory is not None:
+            os.makedirs(directory, exist_ok=True)
+            self.directory = tempfile.mkdtemp(prefix="checkpoints-", dir=directory)
+
+    def put(self, k: int, state: dict):
+        self.nbytes += sum(np.asarray(a).nbytes for a in state.values())
+        if self.directory is None:
+            self.memory[k] = state
+        else:
+            np.savez(os.path.join(self.directory, f"{k}.npz"), **state)
+
+    def get(self, k: int) -> dict:
+        if self.directory is None:
+            return self.memory[k]
+        with np.load(os.path.join(self.directory, f"{k}.npz")) as data:
+            return {key: data[key] for key in data.files}
+
+    def close(self):
+        self.memory.clear()
+        if self.directory is not None:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+
+def rotation_tangent_grad(G: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """dL/dθ at θ = 0 for R ← exp([θ]×) R, from dL/dR = G: with M = G Rᵀ, (M₂₁ − M₁₂, M₀₂ − M₂₀, M₁₀ − M₀₁)."""
+    M = G @ np.swapaxes(R, -1, -2)
+    return np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], axis=-1)
+
+
+def plan_segments(n_steps: int, capacity_steps: int, segment_steps: int | None = None) -> int:
+    """Steps per segment: `segment_steps` if given, else ceil(sqrt(N)); never more than the buffer holds."""
+    if capacity_steps < 1:
+        raise ValueError("the gradient buffer holds no whole step: build with a larger grad_memory")
+    k = int(segment_steps) if segment_steps else math.ceil(math.sqrt(n_steps))
+    if k < 1:
+        raise ValueError(f"segment_steps must be at least 1, got {segment_steps}")
+    if segment_steps and k > capacity_steps:
+        raise ValueError(f"segment_steps={k} exceeds the gradient buffer of {capacity_steps} steps chosen at build "
+                         f"(grad_memory); use segment_steps <= {capacity_steps} or build with more grad_memory")
+    return min(k, capacity_steps, n_steps)
+
+
+def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True, segment_steps=None,
+                      checkpoint_dir=None, progress=None) -> RolloutResult:
+    """Run len(velocities) steps from the simulator's state on the differentiable solver (see module docstring).
+
+    velocities: (N, n_tools, 6) masked tool twists. progress(phase, done, total) is called once per step
+    with phase "forward", "recompute" or "backward"."""
+    n_steps = len(velocities)
+    sub = sim.substeps
+    dt = sim.dt
+    n_tools = len(sim.tools.specs)
+    capacity = (diff.n_slots - 1) // sub
+    K = plan_segments(n_steps, capacity, segment_steps)
+    n_seg = -(-n_steps // K)
+    store = CheckpointStore(checkpoint_dir)
+    applied = np.zeros_like(velocities)  # twists after workspace clipping
+    clipped_dims = np.zeros((n_steps, n_tools, 3), dtype=bool)
+    step_losses = np.zeros(n_steps)
+    t0 = time.perf_counter()
+
+    def seg_steps(seg):
+        return range(seg * K, min(n_steps, (seg + 1) * K))
+
+    def state_at(slot, step):
+        x, v = diff.read_xv(slot)
+        if n_tools:
+            p = diff.tool_p.to_numpy()[:n_tools, slot].astype(np.float64)
+            R = diff.tool_R.to_numpy()[:n_tools, slot].astype(np.float64)
+        else:
+            p, R = np.zeros((0, 3)), np.zeros((0, 3, 3))
+        return StepState(step, step * dt, x, v, p, R)
+
+    def run_segment(seg, first_pass, phase):
+        for j, g in enumerate(seg_steps(seg)):
+            s0 = j * sub
+            if first_pass and n_tools:
+                position = diff.tool_p.to_numpy()[:n_tools, s0].astype(np.float64)
+                applied[g], clipped_dims[g] = clip_twists(sim.tools.specs, position, velocities[g], dt)
+            diff.write_twist(s0, s0 + sub, applied[g])
+            for i in range(sub):
+                diff.substep(s0 + i)
+            if first_pass and loss.active(g + 1, n_steps):
+                step_losses[g], _ = loss(state_at(s0 + sub, g + 1), n_steps, grad=False)
+            if progress:
+                progress(phase, g + 1, n_steps)
+
+    try:
+        start = sim.get_state()
+        diff.write_state(0, start)
+        for seg in range(n_seg):
+            if seg > 0:
+                diff.copy_slot(K * sub, 0)
+            if grad:
+                store.put(seg, diff.read_state(0))
+            run_segment(seg, True, "forward")
+        final_slot = len(seg_steps(n_seg - 1)) * sub
+        final = diff.read_state(final_slot)
+        bad = _nonfinite_state(final)
+        if bad:
+            raise NonFiniteGradientError(f"the rollout's state became NaN or infinite ({bad}) before step {n_steps}; "
+                                         f"use more substeps or slower actions")
+        forward_seconds = time.perf_counter() - t0
+        result = RolloutResult(float(step_losses.sum()), step_losses, clipped_dims.any(axis=2))
+        result.stats = {"segments": n_seg, "segment_steps": K, "buffer_steps": capacity,
+                        "forward_seconds": forward_seconds}
+        if grad:
+            _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at,
+                      run_segment, progress)
+            result.stats["backward_seconds"] = time.perf_counter() - t0 - forward_seconds
+            result.stats["checkpoint_bytes"] = store.nbytes
+        final["step"] = sim.step_count + n_steps
+        sim.set_state(final)
+        return result
+    finally:
+        store.close()
+
+
+def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at, run_segment,
+              progress):
+    n_steps, sub, dt = len(applied), sim.substeps, sim.dt
+    n_tools = len(sim.tools.specs)
+    grad_actions = np.zeros_like(applied)
+    carry = None
+    for seg in reversed(range(n_seg)):
+        if seg != n_seg - 1:  # the last segment is still in the buffer from the forward pass
+            diff.write_state(0, store.get(seg))
+            run_segment(seg, False, "recompute")
+        diff.clear_grads()
+        steps = seg_steps(seg)
+        if carry is not None:
+            diff.add_state_grad(len(steps) * sub, carry)
+        for j in reversed(range(len(steps))):
+            g = steps[j]
+            s0, s1 = j * sub, (j + 1) * sub
+            if loss.active(g + 1, n_steps):
+                _, grads = loss(state_at(s1, g + 1), n_steps, grad=True)
+                for key, value in grads.items():
+                    if not np.all(np.isfinite(value)):
+                        raise NonFiniteGradientError(f"the loss gradient with respect to {key} is NaN or infinite "
+                                                     f"at step {g + 1}")
+                diff.add_state_grad(s1, grads)
+            for i in reversed(range(sub)):
+                diff.substep_grad(s0 + i)
+            if n_tools:
+                tg = diff.twist_grad_sum(s0, s1)
+                cl = clipped_dims[g]
+                if cl.any():
+                    # v = (b − p)/dt on clipped components: the gradient goes to p at the step's start
+                    dp = np.where(cl, -tg[:, :3] / dt, 0.0)
+                    diff.add_state_grad(s0, {"tool_position": dp})
+                    tg[:, :3] = np.where(cl, 0.0, tg[:, :3])
+                grad_actions[g] = tg * np.array([s.action_mask for s in sim.tools.specs], dtype=np.float64)
+            bad = diff.nonfinite_grad_fields(s0)
+            if bad:
+                raise NonFiniteGradientError(
+                    f"the gradient became NaN or infinite in {', '.join(bad)} at step {g} (t = {g * dt:.4g} s), "
+                    f"going backward from step {g + 1}. Common causes: an unstable step (more substeps), particles "
+                    f"at a kink of the contact or plasticity laws, or a NaN in the loss gradient")
+            if progress:
+                progress("backward", n_steps - g, n_steps)
+        carry = diff.read_state(0, grad=True)
+    start = store.get(0)
+    result.grad_actions = grad_actions
+    result.grad_velocities = carry["v"].astype(np.float64)
+    result.grad_positions = carry["x"].astype(np.float64)
+    if n_tools:
+        result.grad_tool_position = carry["tool_position"]
+        result.grad_tool_rotation = rotation_tangent_grad(carry["tool_rotation"], start["tool_rotation"])
+    else:
+        result.grad_tool_position = np.zeros((0, 3))
+        result.grad_tool_rotation = np.zeros((0, 3))
+
+
+def _nonfinite_state(state: dict) -> str:
+    names = [key for key in ("x", "v", "C", "F") if not np.all(np.isfinite(state[key]))]
+    return ", ".join(names)

@@ -1,0 +1,598 @@
+"""The differentiable MLS-MPM substep: the forward solver's physics (mpm.py) on time-indexed particle state,
+with gradients by Taichi's reverse-mode autodiff and a hand-written SVD backward (svd_grad.py).
+
+State of substep s lives in slot s of a buffer of `n_slots` (one checkpoint segment): x[s, p], v[s, p],
+C[s, p], F[s, p] and each tool's pose and held twist (tool_p, tool_R, tool_v, tool_w)[k, s]. A substep
+reads slot s and writes slot s + 1, as kernels in physical order:
+
+    F_trial = (I + Δt C) F                                 # strain update
+    U, Σ, V = svd(F_trial)                                 # only for models that need it; backward by hand
+    P2G:  (F_new, τ) = model(F_trial, C, U, Σ, V); scatter m and m v + A (x_i − x_p) (atomic adds)
+    grid: v_i = (mv)_i / m_i + Δt g, then statics, tools at (tool_p, tool_R)[s], walls
+    G2P:  v, C, x ← x + Δt v, projection out of statics and walls
+    rigid (when the scene has rigid bodies): shape matching as in rigid.py, in six kernels, the polar
+          decomposition R = U Vᵀ of A/|A| by the same SVD backward
+    tools: p ← p + Δt v_tool, R ← exp([ω]× Δt) R
+
+Everything that is not time-indexed (grid, SVD factors, body sums) is recomputed by the backward of a
+substep, which first re-runs the substep's forward kernels and then their gradients in reverse order
+(`substep` / `substep_grad`). Gradients accumulate in the `.grad` of the slot fields; the checkpointing
+driver (checkpoint.py) seeds them from the loss and hands them across segment boundaries.
+
+Differences from the forward solver (mpm.py), all within floating-point round-off of it: the scatter is
+atomic (the CPU forward solver scatters into private per-thread grids, which autodiff cannot reverse), the
+polar decomposition of the rigid projection goes through the SVD, and tool poses advance in the working
+precision instead of float64 numpy.
+"""
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import constitutive, statics
+from fluidlab_core.engine.svd_grad import make_backward_svd
+
+
+@ti.func
+def rotation_from_rotvec(w):
+    """exp([w]×): Rodrigues' formula, with its Taylor series for small angles (finite derivatives at w = 0)."""
+    K = ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    t2 = w.dot(w)
+    a = 1.0 - t2 / 6.0  # sin θ / θ
+    b = 0.5 - t2 / 24.0  # (1 − cos θ) / θ²
+    if t2 > 1e-8:
+        t = ti.sqrt(t2)
+        a = ti.sin(t) / t
+        b = (1.0 - ti.cos(t)) / t2
+    return ti.Matrix.identity(float, 3) + a * K + b * (K @ K)
+
+
+@ti.data_oriented
+class DiffMPMSolver:
+    """Time-indexed twin of an `MPMSolver` (whose constants, stencil and wall rules it shares)."""
+
+    def __init__(self, fast, n_slots: int):
+        self.fast = fast
+        spec = fast.spec
+        real = fast.real
+        self.real = real
+        n = fast.n_particles
+        self.n_particles = n
+        self.n_slots = int(n_slots)
+        self.dt, self.dx, self.inv_dx = fast.dt, fast.dx, fast.inv_dx
+        self.n_tools = len(spec.tools)
+        self.tools = spec.tools
+        self.colliders = spec.colliders
+        shape = (self.n_slots, n)
+
+        # particle state per substep of the segment
+        self.x = ti.Vector.field(3, real, shape=shape, needs_grad=True)  # position (m)
+        self.v = ti.Vector.field(3, real, shape=shape, needs_grad=True)  # velocity (m/s)
+        self.C = ti.Matrix.field(3, 3, real, shape=shape, needs_grad=True)  # APIC affine velocity (1/s)
+        self.F = ti.Matrix.field(3, 3, real, shape=shape, needs_grad=True)  # deformation gradient
+        # per-substep intermediates, recomputed by the backward pass
+        self.F_trial = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # (I + Δt C) F before the model
+        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of F_trial: left rotation
+        self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
+        self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
+        self.grid_m = ti.field(real, shape=fast.grid_shape, needs_grad=True)  # node mass (kg)
+        self.grid_mv = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node momentum
+        self.grid_v = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node velocity after BCs
+        # tools: pose at each slot and the twist held over substep s (world frame)
+        nt = max(self.n_tools, 1)
+        self.tool_p = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # origin (m)
+        self.tool_R = ti.Matrix.field(3, 3, real, shape=(nt, self.n_slots), needs_grad=True)  # tool to world
+        self.tool_v = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # linear (m/s)
+        self.tool_w = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # angular (rad/s)
+        self.twist_grad = ti.Vector.field(6, real, shape=nt)  # Σ over a step's substeps of (v, ω) gradients
+
+        self.models = [constitutive.MODELS[name] for name in fast.model_names]
+        self.svd_models = [k for k, name in enumerate(fast.model_names) if name not in constitutive.NO_SVD]
+        self.backward_svd = make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
+
+        self.rigid = fast.rigid
+        self.has_rigid = fast.rigid is not None
+        if self.rigid is not None:
+            nb = self.rigid.n_bodies
+            self.x_g = ti.Vector.field(3, real, shape=n, needs_grad=True)  # G2P result before the projection
+            self.v_g = ti.Vector.field(3, real, shape=n, needs_grad=True)
+            self.C_g = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)
+            self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
+            self.body_mass = ti.field(real, shape=nb)  # kg (constant)
+            self.com_sum = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # Σ m x (kg m)
+            self.momentum = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # Σ m v (kg m/s)
+            self.A = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # Σ m (x − c) qᵀ
+            self.A_n = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # A / |A|
+            self.L = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # angular momentum about c
+            self.U_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # SVD of A_n
+            self.sig_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)
+            self.V_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)
+            self.R = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # rotation from rest
+            self.inertia = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # about c (kg m²)
+            self.omega = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # angular velocity (rad/s)
+            self._set_body_mass()
+        # NaN watch on gradients: bits 1 x, 2 v, 4 C, 8 F, 16 tools
+        self.bad = ti.field(ti.i32, shape=())
+
+    @ti.kernel
+    def _set_body_mass(self):
+        for p in range(self.n_particles):
+            b = self.rigid.body[p]
+            if b >= 0:
+                self.body_mass[b] += self.fast.mass[p]
+
+    # --- host access --------------------------------------------------------------------------------
+    @property
+    def np_real(self):
+        return np.float64 if self.real == ti.f64 else np.float32
+
+    @ti.kernel
+    def _write_slot(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                    F: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                self.x[s, p][i] = x[p, i]
+                self.v[s, p][i] = v[p, i]
+                for j in ti.static(range(3)):
+                    self.C[s, p][i, j] = C[p, i, j]
+                    self.F[s, p][i, j] = F[p, i, j]
+
+    @ti.kernel
+    def _read_slot(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                   F: ti.types.ndarray(), grad: ti.i32):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                if grad:
+                    x[p, i] = self.x.grad[s, p][i]
+                    v[p, i] = self.v.grad[s, p][i]
+                else:
+                    x[p, i] = self.x[s, p][i]
+                    v[p, i] = self.v[s, p][i]
+                for j in ti.static(range(3)):
+                    if grad:
+                        C[p, i, j] = self.C.grad[s, p][i, j]
+                        F[p, i, j] = self.F.grad[s, p][i, j]
+                    else:
+                        C[p, i, j] = self.C[s, p][i, j]
+                        F[p, i, j] = self.F[s, p][i, j]
+
+    @ti.kernel
+    def _add_slot_grad(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                       F: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                self.x.grad[s, p][i] += x[p, i]
+                self.v.grad[s, p][i] += v[p, i]
+                for j in ti.static(range(3)):
+                    self.C.grad[s, p][i, j] += C[p, i, j]
+                    self.F.grad[s, p][i, j] += F[p, i, j]
+
+    @ti.kernel
+    def _read_xv(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
+                v[p, i] = self.v[s, p][i]
+
+    def write_state(self, s: int, state: dict):
+        """Put a particle state {x, v, C, F} and tool poses {tool_position, tool_rotation} into slot s."""
+        r = self.np_real
+        self._write_slot(s, *(np.ascontiguousarray(state[k], dtype=r) for k in ("x", "v", "C", "F")))
+        if self.n_tools:
+            self.write_tool_pose(s, state["tool_position"], state["tool_rotation"])
+
+    def read_state(self, s: int, grad: bool = False) -> dict:
+        """Particle state (or its gradient) of slot s as numpy arrays, tool poses included."""
+        n, r = self.n_particles, self.np_real
+        out = {"x": np.zeros((n, 3), r), "v": np.zeros((n, 3), r), "C": np.zeros((n, 3, 3), r),
+               "F": np.zeros((n, 3, 3), r)}
+        self._read_slot(s, out["x"], out["v"], out["C"], out["F"], int(grad))
+        if self.n_tools:
+            p = (self.tool_p.grad if grad else self.tool_p).to_numpy()[: self.n_tools, s]
+            R = (self.tool_R.grad if grad else self.tool_R).to_numpy()[: self.n_tools, s]
+            out["tool_position"], out["tool_rotation"] = p.astype(np.float64), R.astype(np.float64)
+        return out
+
+    def add_state_grad(self, s: int, grad: dict):
+        """Add gradients {x, v, C, F, tool_position, tool_rotation} (any subset) into slot s."""
+        n, r = self.n_particles, self.np_real
+        arrays = []
+        for key, shape in (("x", (n, 3)), ("v", (n, 3)), ("C", (n, 3, 3)), ("F", (n, 3, 3))):
+            g = grad.get(key)
+            arrays.append(np.zeros(shape, r) if g is None else np.ascontiguousarray(g, dtype=r))
+        self._add_slot_grad(s, *arrays)
+        if self.n_tools and (grad.get("tool_position") is not None or grad.get("tool_rotation") is not None):
+            gp = np.zeros((self.n_tools, 3)) if grad.get("tool_position") is None else grad["tool_position"]
+            gR = np.zeros((self.n_tools, 3, 3)) if grad.get("tool_rotation") is None else grad["tool_rotation"]
+            self._add_tool_grad(s, np.ascontiguousarray(gp, dtype=r), np.ascontiguousarray(gR, dtype=r))
+
+    def read_xv(self, s: int):
+        n, r = self.n_particles, self.np_real
+        x, v = np.zeros((n, 3), r), np.zeros((n, 3), r)
+        self._read_xv(s, x, v)
+        return x.astype(np.float64), v.astype(np.float64)
+
+    @ti.kernel
+    def _write_tool_pose(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
+        for k in range(self.n_tools):
+            for i in ti.static(range(3)):
+                self.tool_p[k, s][i] = p[k, i]
+                for j in ti.static(range(3)):
+                    self.tool_R[k, s][i, j] = R[k, i, j]
+
+    def write_tool_pose(self, s: int, position, rotation):
+        r = self.np_real
+        self._write_tool_pose(s, np.ascontiguousarray(position, dtype=r), np.ascontiguousarray(rotation, dtype=r))
+
+    @ti.kernel
+    def _add_tool_grad(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
+        for k in range(self.n_tools):
+            for i in ti.static(range(3)):
+                self.tool_p.grad[k, s][i] += p[k, i]
+                for j in ti.static(range(3)):
+                    self.tool_R.grad[k, s][i, j] += R[k, i, j]
+
+    @ti.kernel
+    def _write_twist(self, s0: ti.i32, s1: ti.i32, twist: ti.types.ndarray()):
+        for k, s in ti.ndrange(self.n_tools, (s0, s1)):
+            for i in ti.static(range(3)):
+                self.tool_v[k, s][i] = twist[k, i]
+                self.tool_w[k, s][i] = twist[k, 3 + i]
+
+    def write_twist(self, s0: int, s1: int, twist: np.ndarray):
+        """Hold tool twists (n_tools, 6) over substeps s0 … s1 − 1."""
+        if self.n_tools:
+            self._write_twist(s0, s1, np.ascontiguousarray(twist, dtype=self.np_real))
+
+    @ti.kernel
+    def _sum_twist_grad(self, s0: ti.i32, s1: ti.i32):
+        for k in range(self.n_tools):
+            g = ti.Vector.zero(float, 6)
+            for s in range(s0, s1):
+                for i in ti.static(range(3)):
+                    g[i] += self.tool_v.grad[k, s][i]
+                    g[3 + i] += self.tool_w.grad[k, s][i]
+            self.twist_grad[k] = g
+
+    def twist_grad_sum(self, s0: int, s1: int) -> np.ndarray:
+        """(n_tools, 6) gradient of the twists held over substeps s0 … s1 − 1."""
+        if not self.n_tools:
+            return np.zeros((0, 6))
+        self._sum_twist_grad(s0, s1)
+        return self.twist_grad.to_numpy()[: self.n_tools].astype(np.float64)
+
+    @ti.kernel
+    def _copy_slot(self, src: ti.i32, dst: ti.i32):
+        for p in range(self.n_particles):
+            self.x[dst, p] = self.x[src, p]
+            self.v[dst, p] = self.v[src, p]
+            self.C[dst, p] = self.C[src, p]
+            self.F[dst, p] = self.F[src, p]
+        for k in range(self.n_tools):
+            self.tool_p[k, dst] = self.tool_p[k, src]
+            self.tool_R[k, dst] = self.tool_R[k, src]
+
+    def copy_slot(self, src: int, dst: int):
+        self._copy_slot(src, dst)
+
+    def clear_grads(self):
+        """Zero the gradients of every slot."""
+        for f in (self.x, self.v, self.C, self.F, self.tool_p, self.tool_R, self.tool_v, self.tool_w):
+            f.grad.fill(0.0)
+
+    @ti.kernel
+    def _find_nonfinite_grad(self, s: ti.i32):
+        self.bad[None] = 0
+        for p in range(self.n_particles):
+            bits = 0
+            if not (ti.abs(self.x.grad[s, p]).max() < 1e30):
+                bits |= 1
+            if not (ti.abs(self.v.grad[s, p]).max() < 1e30):
+                bits |= 2
+            if not (ti.abs(self.C.grad[s, p]).max() < 1e30):
+                bits |= 4
+            if not (ti.abs(self.F.grad[s, p]).max() < 1e30):
+                bits |= 8
+            if bits > 0:
+                ti.atomic_or(self.bad[None], bits)
+        for k in range(self.n_tools):
+            if not (ti.abs(self.tool_p.grad[k, s]).max() < 1e30 and ti.abs(self.tool_R.grad[k, s]).max() < 1e30):
+                ti.atomic_or(self.bad[None], 16)
+
+    def nonfinite_grad_fields(self, s: int) -> list[str]:
+        """Names of the slot-s gradient fields holding a NaN or infinity."""
+        self._find_nonfinite_grad(s)
+        bits = int(self.bad[None])
+        names = ("positions (x)", "velocities (v)", "affine velocities (C)", "deformation gradients (F)",
+                 "tool poses")
+        return [name for i, name in enumerate(names) if bits & (1 << i)]
+
+    # --- substep kernels ----------------------------------------------------------------------------
+    @ti.kernel
+    def clear_substep(self):
+        """Zero the grid and every per-substep intermediate, values and gradients."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_m[I] = 0.0
+            self.grid_mv[I] = ti.Vector.zero(float, 3)
+            self.grid_v[I] = ti.Vector.zero(float, 3)
+            self.grid_m.grad[I] = 0.0
+            self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
+            self.grid_v.grad[I] = ti.Vector.zero(float, 3)
+        for p in range(self.n_particles):
+            self.F_trial.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.has_rigid):
+            for p in range(self.n_particles):
+                self.x_g.grad[p] = ti.Vector.zero(float, 3)
+                self.v_g.grad[p] = ti.Vector.zero(float, 3)
+                self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
+                self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
+            for b in range(self.rigid.n_bodies):
+                self.com_sum[b] = ti.Vector.zero(float, 3)
+                self.momentum[b] = ti.Vector.zero(float, 3)
+                self.A[b] = ti.Matrix.zero(float, 3, 3)
+                self.L[b] = ti.Vector.zero(float, 3)
+                self.inertia[b] = ti.Matrix.zero(float, 3, 3)
+                for f in ti.static((self.com_sum, self.momentum, self.L, self.omega)):
+                    f.grad[b] = ti.Vector.zero(float, 3)
+                for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
+                    f.grad[b] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.kernel
+    def strain_update(self, s: ti.i32):
+        """F_trial = (I + Δt C) F."""
+        for p in range(self.n_particles):
+            self.F_trial[p] = (ti.Matrix.identity(float, 3) + self.dt * self.C[s, p]) @ self.F[s, p]
+
+    @ti.kernel
+    def svd_kernel(self):
+        """U Σ Vᵀ = F_trial for particles whose model needs it."""
+        for p in range(self.n_particles):
+            for k in ti.static(self.svd_models):
+                if self.fast.model[p] == k:
+                    self.U[p], self.sig[p], self.V[p] = ti.svd(self.F_trial[p])
+
+    @ti.kernel
+    def svd_grad_kernel(self):
+        """F_trial gradient from the U, Σ, V gradients (svd_grad.py)."""
+        for p in range(self.n_particles):
+            for k in ti.static(self.svd_models):
+                if self.fast.model[p] == k:
+                    self.F_trial.grad[p] += self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p],
+                                                              self.U[p], self.sig[p], self.V[p])
+
+    @ti.ad.grad_replaced
+    def svd(self):
+        self.svd_kernel()
+
+    @ti.ad.grad_for(svd)
+    def svd_grad(self):
+        self.svd_grad_kernel()
+
+    @ti.kernel
+    def p2g(self, s: ti.i32):
+        """Stress per material and the atomic scatter of mass and momentum (mpm.py, P2G)."""
+        for p in range(self.n_particles):
+            dt, dx, inv_dx = self.dt, self.dx, self.inv_dx
+            base, fx, w = self.fast._stencil(self.x[s, p])
+            Cp = self.C[s, p]
+            Fp = self.F_trial[p]
+            prm = self.fast.material_params[self.fast.material[p]]
+            F_new = Fp
+            tau = ti.Matrix.zero(float, 3, 3)
+            for k in ti.static(range(len(self.models))):
+                if self.fast.model[p] == k:
+                    F_new, tau = self.models[k](Fp, Cp, prm, self.U[p], self.sig[p], self.V[p])
+            if ti.static(self.has_rigid):
+                self.F_model[p] = F_new
+            else:
+                self.F[s + 1, p] = F_new
+            mp = self.fast.mass[p]
+            affine = (-dt * self.fast.rest_volume[p] * 4.0 * inv_dx * inv_dx) * tau + mp * Cp
+            momentum = mp * self.v[s, p]
+            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = (offset - fx) * dx
+                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+                self.grid_mv[base + offset] += weight * (momentum + affine @ dpos)
+                self.grid_m[base + offset] += weight * mp
+
+    @ti.kernel
+    def grid_update(self, s: ti.i32):
+        """Node velocities: gravity, statics, tools at their slot-s pose, walls."""
+        for I in ti.grouped(self.grid_m):
+            m = self.grid_m[I]
+            if m > 0.0:
+                vn = self.grid_mv[I] / m + self.dt * ti.Vector(self.fast.gravity)
+                xn = ti.Vector(self.fast.origin) + I * self.dx
+                for k in ti.static(range(len(self.colliders))):
+                    vn = self.colliders[k].grid(xn, vn)
+                for k in ti.static(range(self.n_tools)):
+                    vn = self.tools[k].contact_at(xn, vn, self.tool_p[k, s], self.tool_R[k, s], self.tool_v[k, s],
+                                                  self.tool_w[k, s])
+                vn = self.fast._walls(xn, vn)
+                self.grid_v[I] = vn
+
+    @ti.kernel
+    def g2p(self, s: ti.i32):
+        """Gather v and C, advect, project out of statics and walls (mpm.py, G2P)."""
+        for p in range(self.n_particles):
+            dt, inv_dx = self.dt, self.inv_dx
+            base, fx, w = self.fast._stencil(self.x[s, p])
+            new_v = ti.Vector.zero(float, 3)
+            new_C = ti.Matrix.zero(float, 3, 3)
+            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = offset - fx
+                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+                g_v = self.grid_v[base + offset]
+                new_v += weight * g_v
+                new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
+            xp = self.x[s, p] + dt * new_v
+            for k in ti.static(range(len(self.colliders))):
+                xp, new_v = self.colliders[k].particle(xp, new_v)
+            for d in ti.static(range(3)):
+                if xp[d] < self.fast.lower[d]:
+                    xp[d] = self.fast.lower[d]
+                    new_v[d] = ti.max(new_v[d], 0.0)
+                elif xp[d] > self.fast.upper[d]:
+                    xp[d] = self.fast.upper[d]
+                    new_v[d] = ti.min(new_v[d], 0.0)
+            if ti.static(self.has_rigid):
+                self.x_g[p] = xp
+                self.v_g[p] = new_v
+                self.C_g[p] = new_C
+            else:
+                self.x[s + 1, p] = xp
+                self.v[s + 1, p] = new_v
+                self.C[s + 1, p] = new_C
+
+    @ti.kernel
+    def advance_tools(self, s: ti.i32):
+        """p ← p + Δt v, R ← exp([ω]× Δt) R."""
+        for k in range(self.n_tools):
+            self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
+            self.tool_R[k, s + 1] = rotation_from_rotvec(self.tool_w[k, s] * self.dt) @ self.tool_R[k, s]
+
+    # --- rigid projection (rigid.py), differentiable ------------------------------------------------
+    @ti.kernel
+    def body_sums(self):
+        """Σ m x and Σ m v per body."""
+        for p in range(self.n_particles):
+            b = self.rigid.body[p]
+            if b >= 0:
+                m = self.fast.mass[p]
+                self.com_sum[b] += m * self.x_g[p]
+                self.momentum[b] += m * self.v_g[p]
+
+    @ti.kernel
+    def body_moments(self):
+        """A = Σ m (x − c) qᵀ and L = Σ m (x − c) × v."""
+        for p in range(self.n_particles):
+            b = self.rigid.body[p]
+            if b >= 0:
+                m = self.fast.mass[p]
+                r = self.x_g[p] - self.com_sum[b] / self.body_mass[b]
+                self.A[b] += m * r.outer_product(self.rigid.rest_offset[p])
+                self.L[b] += m * r.cross(self.v_g[p])
+
+    @ti.kernel
+    def body_normalise(self):
+        """A/|A|: order-one entries for the SVD (R is unchanged by the scale)."""
+        for b in range(self.rigid.n_bodies):
+            self.A_n[b] = self.A[b] / ti.sqrt((self.A[b] * self.A[b]).sum())
+
+    @ti.kernel
+    def body_svd_kernel(self):
+        for b in range(self.rigid.n_bodies):
+            self.U_b[b], self.sig_b[b], self.V_b[b] = ti.svd(self.A_n[b])
+
+    @ti.kernel
+    def body_svd_grad_kernel(self):
+        for b in range(self.rigid.n_bodies):
+            self.A_n.grad[b] += self.backward_svd(self.U_b.grad[b], self.sig_b.grad[b], self.V_b.grad[b],
+                                                  self.U_b[b], self.sig_b[b], self.V_b[b])
+
+    @ti.ad.grad_replaced
+    def body_svd(self):
+        self.body_svd_kernel()
+
+    @ti.ad.grad_for(body_svd)
+    def body_svd_grad(self):
+        self.body_svd_grad_kernel()
+
+    @ti.kernel
+    def body_rotation(self):
+        """R = U Vᵀ, the polar rotation of A."""
+        for b in range(self.rigid.n_bodies):
+            self.R[b] = self.U_b[b] @ self.V_b[b].transpose()
+
+    @ti.kernel
+    def body_inertia(self):
+        """I = Σ m (|r|² 1 − r rᵀ), r = R q."""
+        for p in range(self.n_particles):
+            b = self.rigid.body[p]
+            if b >= 0:
+                r = self.R[b] @ self.rigid.rest_offset[p]
+                self.inertia[b] += self.fast.mass[p] * (r.dot(r) * ti.Matrix.identity(float, 3) - r.outer_product(r))
+
+    @ti.kernel
+    def body_omega(self):
+        """ω = I⁻¹ L."""
+        for b in range(self.rigid.n_bodies):
+            self.omega[b] = self.inertia[b].inverse() @ self.L[b]
+
+    @ti.kernel
+    def rigid_write(self, s: ti.i32):
+        """Slot s + 1: body particles on their rigid motion, every particle kept out of the other bodies."""
+        for p in range(self.n_particles):
+            own = self.rigid.body[p]
+            xp, vp, Cp, Fp = self.x_g[p], self.v_g[p], self.C_g[p], self.F_model[p]
+            if own >= 0:
+                R = self.R[own]
+                omega = self.omega[own]
+                r = R @ self.rigid.rest_offset[p]
+                xp = self.com_sum[own] / self.body_mass[own] + r
+                vp = self.momentum[own] / self.body_mass[own] + omega.cross(r)
+                J = self.F_model[p].determinant() * (1.0 + self.dt * self.C_g[p].trace())
+                J = ti.min(ti.max(J, 0.5), 2.0)
+                Fp = R * ti.pow(J, 1.0 / 3.0)
+                Cp = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
+            for b in ti.static(range(len(self.rigid.sdfs))):
+                if own != b:
+                    R, c = self.R[b], self.com_sum[b] / self.body_mass[b]
+                    xl = R.transpose() @ (xp - c) + self.rigid.rest_com[b]
+                    phi = self.rigid.sdfs[b](xl)
+                    if phi < 0.0:
+                        n = R @ self.rigid.normals[b](xl)
+                        xp -= phi * n
+                        v_body = self.momentum[b] / self.body_mass[b] + self.omega[b].cross(xp - c)
+                        vn = (vp - v_body).dot(n)
+                        if vn < 0.0:
+                            vp -= vn * n
+            self.x[s + 1, p] = xp
+            self.v[s + 1, p] = vp
+            self.C[s + 1, p] = Cp
+            self.F[s + 1, p] = Fp
+
+    # --- one substep, forward and backward ----------------------------------------------------------
+    def _rigid_kernels(self):
+        return [self.body_sums, self.body_moments, self.body_normalise, self.body_svd, self.body_rotation,
+                self.body_inertia, self.body_omega]
+
+    @ti.ad.grad_replaced
+    def substep(self, s: int):
+        """Slot s → slot s + 1."""
+        self.clear_substep()
+        self.strain_update(s)  # strain update
+        if self.svd_models:
+            self.svd()  # SVD of F_trial
+        self.p2g(s)  # P2G
+        self.grid_update(s)  # grid update
+        self.g2p(s)  # G2P
+        if self.rigid is not None:
+            for kernel in self._rigid_kernels():  # rigid projection
+                kernel()
+            self.rigid_write(s)
+        if self.n_tools:
+            self.advance_tools(s)  # tool motion
+
+    @ti.ad.grad_for(substep)
+    def substep_grad(self, s: int):
+        """Add the gradients of slot s from those of slot s + 1: re-run the substep's forward kernels (the grid
+        and the other intermediates are not stored), then their gradients in reverse order."""
+        self.substep(s)
+        if self.n_tools:
+            self.advance_tools.grad(s)
+        if self.rigid is not None:
+            self.rigid_write.grad(s)
+            for kernel in reversed(self._rigid_kernels()):
+                if kernel == self.body_svd:
+                    self.body_svd_grad()
+                else:
+                    kernel.grad()
+        self.g2p.grad(s)
+        self.grid_update.grad(s)
+        self.p2g.grad(s)
+        if self.svd_models:
+            self.svd_grad()
+        self.strain_update.grad(s)

@@ -1,0 +1,192 @@
+"""Losses of a rollout: scalars of the particle and tool states at chosen steps, with their gradients.
+
+A loss is evaluated after steps 1 … N of an N-step rollout (step k: the state after k steps, t = k·dt).
+Each term returns its value and, when asked, the gradient of that value with respect to the state it read,
+as numpy arrays in SI units (loss units per metre, per m/s). The rollout sums the terms over steps and
+hands the gradients to the simulator's backward pass (`Simulator.rollout`).
+
+    L = Σ_k Σ_terms w · term(state_k)
+
+Write a new term by subclassing `Loss` and implementing `evaluate`; `Callable` wraps a plain function.
+Terms add (`a + b`) and scale (`2.0 * a`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class StepState:
+    """What a loss sees after `step` steps: positions x and velocities v of every particle (N, 3), tool
+    origins (T, 3) and rotations (T, 3, 3), all float64 in the world frame (m, m/s)."""
+
+    step: int
+    time: float
+    x: np.ndarray
+    v: np.ndarray
+    tool_position: np.ndarray
+    tool_rotation: np.ndarray
+
+
+GRAD_KEYS = ("x", "v", "tool_position", "tool_rotation")
+
+
+class Loss:
+    """Base class. `steps`: "final" (only after the last step), "all", or an iterable of step numbers."""
+
+    def __init__(self, steps="final", weight: float = 1.0):
+        if not (steps in ("final", "all") or not isinstance(steps, str)):
+            raise ValueError(f"steps must be 'final', 'all' or a list of step numbers, got {steps!r}")
+        self.steps = steps if isinstance(steps, str) else frozenset(int(k) for k in steps)
+        self.weight = float(weight)
+
+    def active(self, step: int, horizon: int) -> bool:
+        if self.steps == "final":
+            return step == horizon
+        if self.steps == "all":
+            return True
+        return step in self.steps
+
+    def evaluate(self, state: StepState, grad: bool):
+        """(value, {key: gradient} or None). Keys from GRAD_KEYS; missing keys mean zero gradient."""
+        raise NotImplementedError
+
+    def __call__(self, state: StepState, horizon: int, grad: bool = False):
+        """The weighted value at this step (0 if inactive) and its gradients."""
+        if not self.active(state.step, horizon):
+            return 0.0, {}
+        value, grads = self.evaluate(state, grad)
+        grads = {k: self.weight * np.asarray(g, dtype=np.float64) for k, g in (grads or {}).items()}
+        unknown = set(grads) - set(GRAD_KEYS)
+        if unknown:
+            raise KeyError(f"loss {type(self).__name__} returned gradients for unknown keys {sorted(unknown)}; "
+                           f"allowed: {GRAD_KEYS}")
+        return self.weight * float(value), grads
+
+    def __add__(self, other):
+        return Sum([self, other])
+
+    def __rmul__(self, factor):
+        return Sum([self], factor)
+
+    __mul__ = __rmul__
+
+
+class Sum(Loss):
+    """A weighted sum of terms (each keeps its own steps)."""
+
+    def __init__(self, terms, weight: float = 1.0):
+        self.terms = list(terms)
+        self.weight = float(weight)
+        self.steps = "all"
+
+    def active(self, step, horizon):
+        return any(t.active(step, horizon) for t in self.terms)
+
+    def __call__(self, state, horizon, grad=False):
+        total, out = 0.0, {}
+        for t in self.terms:
+            value, grads = t(state, horizon, grad)
+            total += value
+            for k, g in grads.items():
+                out[k] = out[k] + g if k in out else g
+        return self.weight * total, {k: self.weight * g for k, g in out.items()}
+
+
+def _rows(state_array, particles):
+    return state_array if particles is None else state_array[particles]
+
+
+def _scatter(n, particles, rows):
+    full = np.zeros((n, 3))
+    if particles is None:
+        full[:] = rows
+    else:
+        full[particles] = rows
+    return full
+
+
+class MeanSquaredDistance(Loss):
+    """mean_p |x_p − target_p|² over the chosen particles (m²); target (3,) or one row per particle.
+
+    particles: a slice or index array (e.g. `sim.handle("water").slice`), None for all."""
+
+    def __init__(self, target, particles=None, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.target = np.asarray(target, dtype=np.float64)
+        self.particles = particles
+
+    def evaluate(self, state, grad):
+        x = _rows(state.x, self.particles)
+        diff = x - self.target
+        value = float(np.mean(np.sum(diff * diff, axis=1)))
+        if not grad:
+            return value, None
+        return value, {"x": _scatter(len(state.x), self.particles, 2.0 * diff / len(x))}
+
+
+class CenterOfMassDistance(Loss):
+    """|mean_p x_p − target|² (m²) over the chosen particles (equal masses within a body)."""
+
+    def __init__(self, target, particles=None, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.target = np.asarray(target, dtype=np.float64)
+        self.particles = particles
+
+    def evaluate(self, state, grad):
+        x = _rows(state.x, self.particles)
+        d = x.mean(axis=0) - self.target
+        value = float(d @ d)
+        if not grad:
+            return value, None
+        return value, {"x": _scatter(len(state.x), self.particles, np.tile(2.0 * d / len(x), (len(x), 1)))}
+
+
+class Linear(Loss):
+    """Σ_p (a_p · x_p + b_p · v_p): a linear functional of the state, for tests and probes."""
+
+    def __init__(self, a=None, b=None, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.a = None if a is None else np.asarray(a, dtype=np.float64)
+        self.b = None if b is None else np.asarray(b, dtype=np.float64)
+
+    def evaluate(self, state, grad):
+        value = 0.0
+        grads = {}
+        if self.a is not None:
+            value += float(np.sum(self.a * state.x))
+            grads["x"] = self.a
+        if self.b is not None:
+            value += float(np.sum(self.b * state.v))
+            grads["v"] = self.b
+        return value, (grads if grad else None)
+
+
+class ToolDistance(Loss):
+    """|p_tool − target|² (m²) of one tool's origin."""
+
+    def __init__(self, target, tool: int = 0, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.target = np.asarray(target, dtype=np.float64)
+        self.tool = int(tool)
+
+    def evaluate(self, state, grad):
+        d = state.tool_position[self.tool] - self.target
+        if not grad:
+            return float(d @ d), None
+        g = np.zeros_like(state.tool_position)
+        g[self.tool] = 2.0 * d
+        return float(d @ d), {"tool_position": g}
+
+
+class Callable(Loss):
+    """A loss from a function f(state: StepState, grad: bool) -> (value, {key: gradient} or None)."""
+
+    def __init__(self, func, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.func = func
+
+    def evaluate(self, state, grad):
+        return self.func(state, grad)
