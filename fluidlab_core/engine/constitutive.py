@@ -19,11 +19,13 @@ stress τ = J σ (Pa), which P2G multiplies by the rest volume V⁰.
 The solver unrolls the models present in a scene with `ti.static`, so a scene of liquids never pays for an
 SVD. Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models in `NO_SVD`), so that
 the differentiable solver can compute it in a kernel of its own whose gradient is written by hand
-(svd_grad.py) while the forward solver computes it inline.
+(svd.py) while the forward solver computes it inline.
 """
 from __future__ import annotations
 
 import taichi as ti
+
+from fluidlab_core.engine import svd as svd3
 
 # Singular values below this are clamped before a logarithm (an inverted or crushed element).
 _MIN_STRETCH = 0.05
@@ -41,11 +43,11 @@ def fixed_corotated(F, C, prm, U, sig, V):
 @ti.func
 def corotated_box_yield(F, C, prm, U, sig, V):
     """Plastic: clamp principal stretches to [1 - y1, 1 + y2], then fixed-corotated stress."""
-    for d in ti.static(range(3)):
-        sig[d, d] = ti.min(ti.max(sig[d, d], 1.0 - prm[2]), 1.0 + prm[3])
-    Fp = U @ sig @ V.transpose()
+    # clamped stretches built as a new matrix: Taichi's reverse mode mishandles element writes to a local
+    s = ti.Vector([ti.min(ti.max(sig[d, d], 1.0 - prm[2]), 1.0 + prm[3]) for d in ti.static(range(3))])
+    Fp = U @ ti.Matrix([[s[0], 0.0, 0.0], [0.0, s[1], 0.0], [0.0, 0.0, s[2]]]) @ V.transpose()
     R = U @ V.transpose()
-    J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+    J = s[0] * s[1] * s[2]
     tau = 2.0 * prm[0] * (Fp - R) @ Fp.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
     return Fp, tau
 
@@ -58,8 +60,8 @@ def von_mises(F, C, prm, U, sig, V):
     eps_hat = eps - eps.sum() / 3.0
     eps_hat_norm = ti.sqrt(eps_hat.dot(eps_hat) + 1e-30)  # finite derivative at 0
     yield_strain = ti.sqrt(2.0 / 3.0) * prm[2] / (2.0 * mu)
-    if eps_hat_norm > yield_strain:
-        eps -= (1.0 - yield_strain / eps_hat_norm) * eps_hat
+    # return mapping without a branch (Taichi's reverse mode mishandles a local updated inside one)
+    eps = eps - ti.max(0.0, 1.0 - yield_strain / eps_hat_norm) * eps_hat
     Fp = U @ ti.Matrix([[ti.exp(eps[0]), 0.0, 0.0], [0.0, ti.exp(eps[1]), 0.0], [0.0, 0.0, ti.exp(eps[2])]]) \
         @ V.transpose()
     s = 2.0 * mu * eps + lam * eps.sum()
@@ -116,7 +118,7 @@ def with_svd(name: str):
         sig = ti.Matrix.zero(float, 3, 3)
         V = ti.Matrix.zero(float, 3, 3)
         if ti.static(needs_svd):
-            U, sig, V = ti.svd(F)
+            U, sig, V = svd3.svd(F)
         return model(F, C, prm, U, sig, V)
 
     return func

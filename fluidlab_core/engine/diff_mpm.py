@@ -1,5 +1,5 @@
 """The differentiable MLS-MPM substep: the forward solver's physics (mpm.py) on time-indexed particle state,
-with gradients by Taichi's reverse-mode autodiff and a hand-written SVD backward (svd_grad.py).
+with gradients by Taichi's reverse-mode autodiff and a hand-written SVD backward (svd.py).
 
 State of substep s lives in slot s of a buffer of `n_slots` (one checkpoint segment): x[s, p], v[s, p],
 C[s, p], F[s, p] and each tool's pose and held twist (tool_p, tool_R, tool_v, tool_w)[k, s]. A substep
@@ -7,7 +7,8 @@ reads slot s and writes slot s + 1, as kernels in physical order:
 
     F_trial = (I + Δt C) F                                 # strain update
     U, Σ, V = svd(F_trial)                                 # only for models that need it; backward by hand
-    P2G:  (F_new, τ) = model(F_trial, C, U, Σ, V); scatter m and m v + A (x_i − x_p) (atomic adds)
+    stress: (F_new, τ) = model(F_trial, C, U, Σ, V), one kernel per model
+    P2G:  scatter m and m v + A (x_i − x_p) (atomic adds)
     grid: v_i = (mv)_i / m_i + Δt g, then statics, tools at (tool_p, tool_R)[s], walls
     G2P:  v, C, x ← x + Δt v, projection out of statics and walls
     rigid (when the scene has rigid bodies): shape matching as in rigid.py, in six kernels, the polar
@@ -29,21 +30,11 @@ import numpy as np
 import taichi as ti
 
 from fluidlab_core.engine import constitutive, statics
-from fluidlab_core.engine.svd_grad import make_backward_svd
+from fluidlab_core.engine import svd as svd3
+from fluidlab_core.engine.svd import make_backward_svd
 
 
-@ti.func
-def rotation_from_rotvec(w):
-    """exp([w]×): Rodrigues' formula, with its Taylor series for small angles (finite derivatives at w = 0)."""
-    K = ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    t2 = w.dot(w)
-    a = 1.0 - t2 / 6.0  # sin θ / θ
-    b = 0.5 - t2 / 24.0  # (1 − cos θ) / θ²
-    if t2 > 1e-8:
-        t = ti.sqrt(t2)
-        a = ti.sin(t) / t
-        b = (1.0 - ti.cos(t)) / t2
-    return ti.Matrix.identity(float, 3) + a * K + b * (K @ K)
+rotation_from_rotvec = svd3.rotation_from_rotvec  # exp([w]×), finite derivatives at w = 0
 
 
 @ti.data_oriented
@@ -74,6 +65,8 @@ class DiffMPMSolver:
         self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of F_trial: left rotation
         self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
         self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
+        self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
+        self.tau = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # Kirchhoff stress (Pa)
         self.grid_m = ti.field(real, shape=fast.grid_shape, needs_grad=True)  # node mass (kg)
         self.grid_mv = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node momentum
         self.grid_v = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node velocity after BCs
@@ -96,7 +89,6 @@ class DiffMPMSolver:
             self.x_g = ti.Vector.field(3, real, shape=n, needs_grad=True)  # G2P result before the projection
             self.v_g = ti.Vector.field(3, real, shape=n, needs_grad=True)
             self.C_g = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)
-            self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
             self.body_mass = ti.field(real, shape=nb)  # kg (constant)
             self.com_sum = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # Σ m x (kg m)
             self.momentum = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # Σ m v (kg m/s)
@@ -322,12 +314,13 @@ class DiffMPMSolver:
             self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_rigid):
             for p in range(self.n_particles):
                 self.x_g.grad[p] = ti.Vector.zero(float, 3)
                 self.v_g.grad[p] = ti.Vector.zero(float, 3)
                 self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
-                self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
             for b in range(self.rigid.n_bodies):
                 self.com_sum[b] = ti.Vector.zero(float, 3)
                 self.momentum[b] = ti.Vector.zero(float, 3)
@@ -351,11 +344,11 @@ class DiffMPMSolver:
         for p in range(self.n_particles):
             for k in ti.static(self.svd_models):
                 if self.fast.model[p] == k:
-                    self.U[p], self.sig[p], self.V[p] = ti.svd(self.F_trial[p])
+                    self.U[p], self.sig[p], self.V[p] = svd3.svd(self.F_trial[p])
 
     @ti.kernel
     def svd_grad_kernel(self):
-        """F_trial gradient from the U, Σ, V gradients (svd_grad.py)."""
+        """F_trial gradient from the U, Σ, V gradients (svd.py)."""
         for p in range(self.n_particles):
             for k in ti.static(self.svd_models):
                 if self.fast.model[p] == k:
@@ -371,25 +364,25 @@ class DiffMPMSolver:
         self.svd_grad_kernel()
 
     @ti.kernel
+    def stress(self, s: ti.i32, k: ti.template()):
+        """(F_new, τ) of constitutive model k for its particles: one kernel per model, so that each gradient
+        kernel stays small (all models in one reverse kernel took 11 minutes to compile)."""
+        for p in range(self.n_particles):
+            if self.fast.model[p] == k:
+                prm = self.fast.material_params[self.fast.material[p]]
+                self.F_model[p], self.tau[p] = self.models[k](self.F_trial[p], self.C[s, p], prm, self.U[p],
+                                                               self.sig[p], self.V[p])
+
+    @ti.kernel
     def p2g(self, s: ti.i32):
-        """Stress per material and the atomic scatter of mass and momentum (mpm.py, P2G)."""
+        """Atomic scatter of mass and momentum with the stress τ (mpm.py, P2G)."""
         for p in range(self.n_particles):
             dt, dx, inv_dx = self.dt, self.dx, self.inv_dx
             base, fx, w = self.fast._stencil(self.x[s, p])
-            Cp = self.C[s, p]
-            Fp = self.F_trial[p]
-            prm = self.fast.material_params[self.fast.material[p]]
-            F_new = Fp
-            tau = ti.Matrix.zero(float, 3, 3)
-            for k in ti.static(range(len(self.models))):
-                if self.fast.model[p] == k:
-                    F_new, tau = self.models[k](Fp, Cp, prm, self.U[p], self.sig[p], self.V[p])
-            if ti.static(self.has_rigid):
-                self.F_model[p] = F_new
-            else:
-                self.F[s + 1, p] = F_new
+            if ti.static(not self.has_rigid):
+                self.F[s + 1, p] = self.F_model[p]
             mp = self.fast.mass[p]
-            affine = (-dt * self.fast.rest_volume[p] * 4.0 * inv_dx * inv_dx) * tau + mp * Cp
+            affine = (-dt * self.fast.rest_volume[p] * 4.0 * inv_dx * inv_dx) * self.tau[p] + mp * self.C[s, p]
             momentum = mp * self.v[s, p]
             for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
                 dpos = (offset - fx) * dx
@@ -430,13 +423,7 @@ class DiffMPMSolver:
             xp = self.x[s, p] + dt * new_v
             for k in ti.static(range(len(self.colliders))):
                 xp, new_v = self.colliders[k].particle(xp, new_v)
-            for d in ti.static(range(3)):
-                if xp[d] < self.fast.lower[d]:
-                    xp[d] = self.fast.lower[d]
-                    new_v[d] = ti.max(new_v[d], 0.0)
-                elif xp[d] > self.fast.upper[d]:
-                    xp[d] = self.fast.upper[d]
-                    new_v[d] = ti.min(new_v[d], 0.0)
+            xp, new_v = self.fast._clamp_to_walls(xp, new_v)
             if ti.static(self.has_rigid):
                 self.x_g[p] = xp
                 self.v_g[p] = new_v
@@ -484,7 +471,7 @@ class DiffMPMSolver:
     @ti.kernel
     def body_svd_kernel(self):
         for b in range(self.rigid.n_bodies):
-            self.U_b[b], self.sig_b[b], self.V_b[b] = ti.svd(self.A_n[b])
+            self.U_b[b], self.sig_b[b], self.V_b[b] = svd3.svd(self.A_n[b])
 
     @ti.kernel
     def body_svd_grad_kernel(self):
@@ -566,6 +553,8 @@ class DiffMPMSolver:
         self.strain_update(s)  # strain update
         if self.svd_models:
             self.svd()  # SVD of F_trial
+        for k in range(len(self.models)):
+            self.stress(s, k)  # constitutive models
         self.p2g(s)  # P2G
         self.grid_update(s)  # grid update
         self.g2p(s)  # G2P
@@ -593,6 +582,8 @@ class DiffMPMSolver:
         self.g2p.grad(s)
         self.grid_update.grad(s)
         self.p2g.grad(s)
+        for k in reversed(range(len(self.models))):
+            self.stress.grad(s, k)
         if self.svd_models:
             self.svd_grad()
         self.strain_update.grad(s)

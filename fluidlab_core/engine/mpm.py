@@ -232,13 +232,7 @@ class MPMSolver:
             for k in ti.static(range(len(self.spec.colliders))):
                 xp, new_v = self.spec.colliders[k].particle(xp, new_v)
             # domain walls: the same for particles past a wall
-            for d in ti.static(range(3)):
-                if xp[d] < self.lower[d]:
-                    xp[d] = self.lower[d]
-                    new_v[d] = ti.max(new_v[d], 0.0)
-                elif xp[d] > self.upper[d]:
-                    xp[d] = self.upper[d]
-                    new_v[d] = ti.min(new_v[d], 0.0)
+            xp, new_v = self._clamp_to_walls(xp, new_v)
             self.v[p] = new_v
             self.C[p] = new_C
             self.x[p] = xp
@@ -246,19 +240,31 @@ class MPMSolver:
     @ti.func
     def _walls(self, xn, vn):
         """Domain walls at lower/upper: nodes within half a cell of a wall lose their velocity into it
-        (slip, optional Coulomb friction)."""
+        (slip, optional Coulomb friction). Whole-vector updates only: Taichi's reverse mode mishandles a
+        vector component written inside a runtime branch."""
         half = 0.5 * self.dx
         for d in ti.static(range(3)):
             into = (xn[d] < self.lower[d] + half * 1.01 and vn[d] < 0.0) or \
                 (xn[d] > self.upper[d] - half * 1.01 and vn[d] > 0.0)
             if into:
                 normal_speed = ti.abs(vn[d])
-                vn[d] = 0.0
+                vn = vn * (1.0 - ti.Vector.unit(3, d, float))
                 if ti.static(self.spec.wall_friction > 0.0):
                     vt_norm = statics.safe_norm(vn)
                     if vt_norm > 1e-12:
                         vn *= ti.max(0.0, 1.0 - self.spec.wall_friction * normal_speed / vt_norm)
         return vn
+
+    @ti.func
+    def _clamp_to_walls(self, xp, vp):
+        """Particles past a wall go back onto it and lose their velocity into it (whole-vector form, see
+        _walls)."""
+        lo, hi = ti.Vector(self.lower), ti.Vector(self.upper)
+        below = ti.cast(xp < lo, float)
+        above = ti.cast(xp > hi, float)
+        xp = ti.min(ti.max(xp, lo), hi)
+        vp = vp - below * ti.min(vp, 0.0) - above * ti.max(vp, 0.0)
+        return xp, vp
 
     @ti.kernel
     def find_nonfinite(self):

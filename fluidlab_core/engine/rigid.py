@@ -33,6 +33,8 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
+from fluidlab_core.engine import svd as svd3
+
 # The exclusion step is unrolled per body; past this many bodies it is skipped (compile time).
 MAX_EXCLUDING_BODIES = 16
 
@@ -105,8 +107,8 @@ class RigidBodies:
             # scale A to order one first: its entries are ~ m q² (1e-9 kg m² per particle), where a float32
             # SVD's absolute tolerances break down
             A = self.A[b]
-            R, _ = ti.polar_decompose(A / (A.norm() + 1e-30))
-            self.rotation[b] = R
+            U, _, V = svd3.svd(A / (A.norm() + 1e-30))
+            self.rotation[b] = U @ V.transpose()
         for p in s.x:
             b = self.body[p]
             if b >= 0:
