@@ -200,3 +200,17 @@ def test_rollout_refusals(setup):
     with pytest.raises(TypeError, match="Loss"):
         sim.rollout(np.zeros((3, 2, 6)), lambda s: 0.0)
     assert sim.get_state()["step"] == start["step"], "a refused rollout does not step"
+
+
+def test_segments_follow_sqrt_horizon_within_the_buffer():
+    """About sqrt(N) steps per segment, never more than the buffer holds, and clear refusals."""
+    from fluidlab_core.engine.checkpoint import plan_segments
+
+    assert plan_segments(10_000, 200) == 100  # 100 segments of 100 steps: memory ~ sqrt(N), not N
+    assert plan_segments(100_000, 200) == 200  # past the buffer: more, shorter segments
+    assert plan_segments(5, 200) == 3
+    assert plan_segments(5, 200, segment_steps=5) == 5
+    with pytest.raises(ValueError, match="exceeds the gradient buffer"):
+        plan_segments(100, 10, segment_steps=20)
+    with pytest.raises(ValueError, match="grad_memory"):
+        plan_segments(100, 0)

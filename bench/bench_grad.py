@@ -1,0 +1,83 @@
+"""Gradient cost: forward + backward time over forward time, and peak memory against the horizon.
+
+Scene ("small"): a water block in a box stirred by a soft-contact stick, 12³ grid, float32 on the CPU.
+Each horizon runs in a child process, so that its peak resident memory (ru_maxrss) is its own:
+  forward     the fast solver (`rollout(grad=False)`)
+  diff fwd    the differentiable solver's forward only (atomic scatter, time-indexed state)
+  fwd + bwd   `rollout(grad=True)`: checkpointed forward, then each segment re-run and reversed
+Ratios are against the fast forward run in the same process (warm kernels: each is run once first).
+
+    python bench/bench_grad.py [--horizons 100 1000 10000] [--out bench/results/grad_cpu.txt]
+"""
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+import fluidlab_core as fl
+from fluidlab_core import losses, shapes as S, materials as M
+from fluidlab_core.engine.checkpoint import rollout_with_grad
+fl.init(arch="cpu", precision="f32", seed=0)
+N = int(sys.argv[1])
+sc = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=12, dt=4e-4, substeps=2)
+water = sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.1, 0.1, 0.03)), M.WATER, name="water")
+sc.add_tool(S.Cylinder((0, 0, 0), 0.006, 0.06), pose=(0.05, 0.05, 0.04, 0, 0, 0, 1), softness=500.0,
+            workspace=((0.02, 0.02, 0.02), (0.08, 0.08, 0.08)), action_mask=(1, 1, 0, 0, 0, 0))
+sim = sc.build(requires_grad=True, grad_max_steps=200)
+loss = losses.CenterOfMassDistance((0.07, 0.05, 0.01), particles=sim.handle("water").slice, steps="all")
+t = np.arange(N) * sim.dt
+actions = np.stack([0.05 * np.cos(20 * np.pi * t), 0.05 * np.sin(20 * np.pi * t)] + [0 * t] * 4, axis=1)
+start = sim.get_state()
+sim.rollout(actions[:4], loss); sim.set_state(start); sim.rollout(actions[:4], loss, grad=True)  # compile
+rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+def timed(fn):
+    sim.set_state(start); t0 = time.perf_counter(); out = fn(); return time.perf_counter() - t0, out
+fwd, _ = timed(lambda: sim.rollout(actions, loss))
+dfwd, _ = timed(lambda: rollout_with_grad(sim, sim.diff, sim._action_sequence(actions), loss, grad=False))
+both, res = timed(lambda: sim.rollout(actions, loss, grad=True))
+print(json.dumps({"N": N, "particles": sim.n_particles, "forward_s": fwd, "diff_forward_s": dfwd, "fwd_bwd_s": both,
+                  "segments": res.stats["segments"], "segment_steps": res.stats["segment_steps"],
+                  "checkpoint_MB": res.stats["checkpoint_bytes"] / 1e6, "peak_rss_MB": resource.getrusage(
+                      resource.RUSAGE_SELF).ru_maxrss / 1e3, "rss_after_compile_MB": rss_before / 1e3,
+                  "grad_finite": bool(np.all(np.isfinite(res.grad_actions)))}))
+"""
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--horizons", type=int, nargs="+", default=[100, 1000, 10000])
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    rows = []
+    for n in args.horizons:
+        print(f"horizon {n} steps ...", file=sys.stderr, flush=True)
+        out = subprocess.run([sys.executable, "-c", CHILD, str(n)], capture_output=True, text=True, env=env)
+        if out.returncode != 0:
+            raise SystemExit(f"horizon {n} failed:\n{out.stderr[-3000:]}")
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    lines = [f"gradient benchmark: {rows[0]['particles']} particles, 12^3 grid, 2 substeps of 0.2 ms per step, float32, CPU "
+             f"({os.cpu_count()} cores), {time.strftime('%Y-%m-%d')}",
+             "| steps | segments x steps | fast fwd (s) | diff fwd (s) | fwd+bwd (s) | fwd+bwd / fast fwd | "
+             "fwd+bwd / diff fwd | checkpoints (MB) | peak RSS (MB) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['N']} | {r['segments']} x {r['segment_steps']} | {r['forward_s']:.2f} | "
+                     f"{r['diff_forward_s']:.2f} | {r['fwd_bwd_s']:.2f} | {r['fwd_bwd_s'] / r['forward_s']:.2f} | "
+                     f"{r['fwd_bwd_s'] / r['diff_forward_s']:.2f} | {r['checkpoint_MB']:.1f} | {r['peak_rss_MB']:.0f} |")
+    text = "\n".join(lines)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
