@@ -127,13 +127,8 @@ class MeanSquaredDistance(Loss):
         return value, {"x": _scatter(len(state.x), self.particles, 2.0 * diff / len(x))}
 
 
-class CenterOfMassDistance(Loss):
-    """|mean_p x_p − target|² (m²) over the chosen particles (equal masses within a body)."""
-
-    def __init__(self, target, particles=None, steps="final", weight: float = 1.0):
-        super().__init__(steps, weight)
-        self.target = np.asarray(target, dtype=np.float64)
-        self.particles = particles
+class CenterOfMassDistance(MeanSquaredDistance):
+    """|mean_p x_p − target|² (m²) over the chosen particles (equal masses within a body); target (3,)."""
 
     def evaluate(self, state, grad):
         x = _rows(state.x, self.particles)

@@ -410,17 +410,8 @@ class DiffMPMSolver:
     def g2p(self, s: ti.i32):
         """Gather v and C, advect, project out of statics and walls (mpm.py, G2P)."""
         for p in range(self.n_particles):
-            dt, inv_dx = self.dt, self.inv_dx
-            base, fx, w = self.fast._stencil(self.x[s, p])
-            new_v = ti.Vector.zero(float, 3)
-            new_C = ti.Matrix.zero(float, 3, 3)
-            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = offset - fx
-                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
-                g_v = self.grid_v[base + offset]
-                new_v += weight * g_v
-                new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
-            xp = self.x[s, p] + dt * new_v
+            new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
+            xp = self.x[s, p] + self.dt * new_v
             for k in ti.static(range(len(self.colliders))):
                 xp, new_v = self.colliders[k].particle(xp, new_v)
             xp, new_v = self.fast._clamp_to_walls(xp, new_v)

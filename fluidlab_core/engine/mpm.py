@@ -162,7 +162,7 @@ class MPMSolver:
     @ti.kernel
     def substep(self):
         """One MLS-MPM substep: clear grid, P2G, grid update, G2P."""
-        dt, dx, inv_dx = self.dt, self.dx, self.inv_dx
+        dt, dx = self.dt, self.dx
         if ti.static(self.scatter_copies == 0):
             # clear grid
             for I in ti.grouped(self.grid_m):
@@ -218,15 +218,7 @@ class MPMSolver:
                 self.grid_v[I] = vn
         # G2P
         for p in self.x:
-            base, fx, w = self._stencil(self.x[p])
-            new_v = ti.Vector.zero(float, 3)
-            new_C = ti.Matrix.zero(float, 3, 3)
-            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = offset - fx
-                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
-                g_v = self.grid_v[base + offset]
-                new_v += weight * g_v
-                new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
+            new_v, new_C = self._gather(self.grid_v, self.x[p])
             xp = self.x[p] + dt * new_v
             # statics: particles found inside are put back on the surface
             for k in ti.static(range(len(self.spec.colliders))):
@@ -236,6 +228,20 @@ class MPMSolver:
             self.v[p] = new_v
             self.C[p] = new_C
             self.x[p] = xp
+
+    @ti.func
+    def _gather(self, grid_v, xp):
+        """G2P's gather at position xp: v_p = Σ w_ip v_i and C_p = (4/Δx²) Σ w_ip v_i (x_i − x_p)ᵀ."""
+        base, fx, w = self._stencil(xp)
+        new_v = ti.Vector.zero(float, 3)
+        new_C = ti.Matrix.zero(float, 3, 3)
+        for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = offset - fx
+            weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+            g_v = grid_v[base + offset]
+            new_v += weight * g_v
+            new_C += (4.0 * self.inv_dx * weight) * g_v.outer_product(dpos)
+        return new_v, new_C
 
     @ti.func
     def _walls(self, xn, vn):
