@@ -15,6 +15,9 @@ INSTALL_REQUIRES = [
     "trimesh==5.2.0",
     "rtree==1.4.1",
     "pillow==13.0.0",
+    "gymnasium==1.4.0",
+    "cma==4.5.0",
+    "imageio-ffmpeg==0.8.1",  # ships the ffmpeg binary that encodes the MP4 videos
 ]
 
 setup(
@@ -24,6 +27,7 @@ setup(
     packages=find_packages(include=["fluidlab_core", "fluidlab_core.*", "fluidlab_ros", "fluidlab_ros.*"]),
     python_requires=">=3.11",
     install_requires=INSTALL_REQUIRES,
+    package_data={"fluidlab_core.tasks": ["data/*.npz"]},
     extras_require={"test": ["pytest==9.2.0"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

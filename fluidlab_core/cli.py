@@ -3,9 +3,16 @@
     fluidlab demo [--out DIR] [--size small|paper] [--duration S] [--frames N] [--view NAME]
     fluidlab materials
     fluidlab bench [--particles N ...]
+    fluidlab list
+    fluidlab optimise TASK [--method dp|dp-h|cma-es] [--budget STEPS] [--seed S] [--size small|paper]
+                           [--name NAME] [--root trajectories]
+    fluidlab evaluate TRAJECTORY.json
+    fluidlab render TRAJECTORY.json [--out DIR] [--every N] [--no-mp4]
 
-Every subcommand takes --arch (cpu, cuda, auto) and --precision (f32, f64); the default is the CPU in
-float32.
+Every simulating subcommand takes --arch (cpu, cuda, auto) and --precision (f32, f64); the default is the
+CPU in float32, except optimise, evaluate and render, which default to float64: the gradients are validated
+in float64 (float32 gradients of elastic bodies can overflow, docs/engine.md), and a trajectory is evaluated
+in the precision it was optimised in.
 """
 from __future__ import annotations
 
@@ -13,9 +20,115 @@ import argparse
 import sys
 
 
-def _add_backend(parser):
+def _add_backend(parser, precision="f32"):
     parser.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
-    parser.add_argument("--precision", default="f32", choices=["f32", "f64"], help="real type (default f32)")
+    parser.add_argument("--precision", default=precision, choices=["f32", "f64"],
+                        help=f"real type (default {precision})")
+
+
+class _Bar:
+    """A one-line progress bar on stderr."""
+
+    def __init__(self, total: int, width: int = 30):
+        self.total, self.width = max(1, total), width
+        self.tty = sys.stderr.isatty()
+
+    def update(self, done: int, text: str):
+        filled = int(self.width * min(done, self.total) / self.total)
+        line = f"[{'#' * filled}{'.' * (self.width - filled)}] {text}"
+        if self.tty:
+            print("\r" + line, end="", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+    def close(self):
+        if self.tty:
+            print(file=sys.stderr)
+
+
+def _cmd_list(args):
+    from fluidlab_core import tasks
+
+    print(f"{'task':<15} {'size':<6} {'grid':>4} {'dt s':>7} {'horizon':>7} {'tool':<7} actions")
+    for name in tasks.names():
+        for size in ("small", "paper"):
+            t = tasks.make(name, size)
+            c = t.config
+            print(f"{name:<15} {size:<6} {c.grid_res:>4} {c.dt:>7.4f} {c.horizon:>7} {t.tool_name:<7} "
+                  f"{', '.join(t.action_axis_names())} (m/s, |v| <= {t.max_tool_speed})")
+    return 0
+
+
+def _cmd_optimise(args):
+    import json
+
+    import fluidlab_core
+    from fluidlab_core import optim, tasks
+    from fluidlab_core.trajectory import check_name, path_for
+
+    name = check_name(args.name or f"{args.method}_seed{args.seed}_{args.size}")
+    task = tasks.make(args.task, size=args.size)
+    budget = args.budget if args.budget is not None else 12 * task.horizon
+    fluidlab_core.init(arch=args.arch, precision=args.precision)
+    print(f"optimising {task.name} ({args.size}) with {args.method}, budget {budget} simulated steps, seed "
+          f"{args.seed}; the first iteration compiles the simulator (minutes when the cache is cold)",
+          file=sys.stderr)
+    bar = _Bar(budget)
+    traj = optim.optimise(task, args.method, budget, seed=args.seed,
+                          callback=lambda p: bar.update(p.steps, p.line()))
+    bar.close()
+    path = traj.save(path_for(args.root, task.name, name))
+    report = {"task": task.name, "size": args.size, "method": args.method, "seed": args.seed, "trajectory": str(path),
+              **{k: traj.metadata[k] for k in ("final_loss", "return", "budget_steps", "steps_used", "iterations",
+                                               "seconds")},
+              "loss_first": traj.loss_history[0] if traj.loss_history else None,
+              "loss_best": min(traj.loss_history) if traj.loss_history else None,
+              "precision": args.precision, "arch": args.arch}
+    report_path = path.with_name(path.stem + ".report.json")
+    tmp = report_path.with_name("." + report_path.name + ".tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(report_path)
+    print(f"final loss {report['final_loss']:.6g} (reference physics), return {report['return']:.4g}")
+    print(f"wrote {path} and {report_path}")
+    return 0
+
+
+def _load_trajectory(path):
+    from fluidlab_core.trajectory import Trajectory
+
+    return Trajectory.load(path)
+
+
+def _cmd_evaluate(args):
+    import fluidlab_core
+    from fluidlab_core.episode import task_for
+
+    traj = _load_trajectory(args.trajectory)
+    task = task_for(traj, args.size)
+    fluidlab_core.init(arch=args.arch, precision=args.precision)
+    actions, position = task.actions_from_trajectory(traj)
+    out = task.evaluate(actions, tool_position=position)
+    print(f"{task.name} ({task.size}): loss {out['loss']:.6g}, return {out['return']:.4g} over {len(actions)} steps "
+          f"({len(actions) * task.dt:.3g} s); workspace clipped {out['clipped_steps']} steps")
+    return 0
+
+
+def _cmd_render(args):
+    import fluidlab_core
+    from fluidlab_core.episode import render_episode, task_for
+
+    if args.every < 1:
+        raise ValueError(f"--every must be at least 1 step, got {args.every}")
+    traj = _load_trajectory(args.trajectory)
+    task = task_for(traj, args.size)
+    fluidlab_core.init(arch=args.arch, precision=args.precision)
+    bar = _Bar(traj.n_steps)
+    out = render_episode(traj, args.out, every=args.every, mp4=not args.no_mp4, task=task,
+                         progress=lambda k, n: bar.update(k, f"step {k}/{n}"))
+    bar.close()
+    print(f"wrote {len(out['frames'])} frames to {args.out}/" + (f" and {out['mp4']}" if out["mp4"] else "")
+          + f"; loss {out['loss']:.6g}")
+    return 0
 
 
 def _cmd_demo(args):
@@ -74,10 +187,39 @@ def main(argv=None) -> int:
     _add_backend(p)
     p.set_defaults(func=_cmd_bench)
 
+    p = sub.add_parser("list", help="list the tasks and their sizes")
+    p.set_defaults(func=_cmd_list)
+
+    p = sub.add_parser("optimise", aliases=["optimize"], help="optimise a task's trajectory and save it")
+    p.add_argument("task", help="task name (fluidlab list)")
+    p.add_argument("--method", default="dp", choices=["dp", "dp-h", "cma-es"])
+    p.add_argument("--budget", type=int, default=None, help="simulated steps (default 12 rollouts of the horizon)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", default="small", choices=["small", "paper"])
+    p.add_argument("--name", default=None, help="trajectory name (default METHOD_seedS_SIZE)")
+    p.add_argument("--root", default="trajectories", help="folder of trajectories (default ./trajectories)")
+    _add_backend(p, "f64")
+    p.set_defaults(func=_cmd_optimise)
+
+    p = sub.add_parser("evaluate", help="loss and return of a trajectory on its task's reference physics")
+    p.add_argument("trajectory", help="a trajectory JSON file")
+    p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
+    _add_backend(p, "f64")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("render", help="play a trajectory and write PNG frames and an MP4")
+    p.add_argument("trajectory", help="a trajectory JSON file")
+    p.add_argument("--out", default="out/render", help="folder (default out/render)")
+    p.add_argument("--every", type=int, default=2, help="steps between frames (default 2)")
+    p.add_argument("--no-mp4", action="store_true", help="frames only")
+    p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
+    _add_backend(p, "f64")
+    p.set_defaults(func=_cmd_render)
+
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, KeyError) as err:
+    except (ValueError, KeyError, OSError) as err:
         print(f"fluidlab: error: {err}", file=sys.stderr)
         return 2
 

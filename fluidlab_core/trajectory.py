@@ -170,6 +170,7 @@ class Trajectory:
                 f.write(text)
                 f.flush()
                 os.fsync(f.fileno())
+            os.chmod(tmp, 0o644)  # mkstemp makes it private; a trajectory is a shareable document
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):

@@ -1,0 +1,52 @@
+"""Trajectory optimisers: `optimise(task, method, budget, seed, callback)` returns a Trajectory.
+
+Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction; optim/dp.py),
+"dp-h" (the same loop without them) and "cma-es" (optim/cmaes.py). Every method
+- takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
+- takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
+  floating-point sums in multithreaded CPU kernels),
+- reports each iteration to `callback(progress)` (optim/progress.py); a callback that returns True stops
+  the run, which then returns the best trajectory so far,
+- is judged by the loss of its best parameters on the task's reference physics (hard contact), which the
+  returned trajectory records in `metadata["final_loss"]` with the reward return.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from fluidlab_core.optim.progress import Progress, Result
+
+METHODS = ("dp", "dp-h", "cma-es")
+
+
+def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_iterations: int | None = None,
+             size: str = "small"):
+    """Optimise `task` (a Task or a task name, made at `size`) and return its Trajectory."""
+    from fluidlab_core import tasks
+    from fluidlab_core.optim import cmaes, dp
+
+    if isinstance(task, str):
+        task = tasks.make(task, size=size)
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
+    if not isinstance(budget, (int, np.integer)) or budget < task.horizon:
+        raise ValueError(f"budget must be a whole number of simulated steps of at least one rollout "
+                         f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if method == "cma-es":
+        result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
+    else:
+        opts = dp.DPOptions() if method == "dp" else dp.DPOptions.plain()
+        result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations)
+    par = result.parametrisation
+    actions, position = par.actions(result.theta), par.tool_position(result.theta)
+    final = task.evaluate(actions, tool_position=position)
+    meta = {"final_loss": final["loss"], "return": final["return"], "budget_steps": int(budget),
+            "steps_used": result.steps, "iterations": result.iterations, "seconds": round(result.seconds, 2),
+            "settings": result.settings}
+    return task.trajectory(actions, tool_position=position, method=method, seed=int(seed),
+                           loss_history=result.history, metadata=meta)
+
+
+__all__ = ["optimise", "METHODS", "Progress", "Result"]

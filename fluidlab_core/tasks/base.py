@@ -1,0 +1,285 @@
+"""What every task shares: a scene recipe in the robot's base frame, a horizon, a loss, a reward, observations,
+and the translation between a task's few action dimensions and the engine's 6-D tool twist.
+
+A task is a description plus cached simulators; it compiles nothing until a simulator is asked for.
+
+    task = tasks.make("LatteArtStir", size="small")
+    sim = task.simulator()                       # reference physics: hard tool contact, no gradients
+    task.reset(sim)                              # the documented start state
+    out = task.evaluate(actions)                 # actions (N, k) in the task's action space (m/s)
+
+Units: metres, seconds, m/s; the world frame is the robot base frame `fr3_link0` (REP-103, z up).
+Actions are the tool's velocity along the task's action axes (for the tasks here: vx, vy in the horizontal
+plane), held for one step of dt seconds; `twists(actions)` expands them to (N, 6) twists (vx, vy, vz, wx, wy,
+wz) as the engine and the trajectory file use them.
+
+Contact: the reference physics of every task uses hard tool contact (the stick and the paddle are solid);
+the soft contact model of FluidLab is an optimisation device (`contact="soft"`) that DP uses to get smoother
+gradients. Reported losses are always those of the reference physics.
+
+Reward (Gymnasium): r_k = c1 − c2 · ℓ_k after each step k, where ℓ_k is the task's per-step loss term
+(`step_term`) and c1, c2 are documented per task so that a typical step earns a reward in about [−1, 1].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fluidlab_core import losses
+from fluidlab_core.trajectory import Trajectory
+
+SIZES = ("small", "paper")
+CONTACTS = ("hard", "soft")
+FRAME_ID = "fr3_link0"
+
+
+@dataclass(frozen=True)
+class SizeConfig:
+    """The resolution a task runs at. `substeps` is the least that passes the stability check (never fewer than
+    the paper's 10 at paper size)."""
+
+    grid_res: int
+    dt: float  # s per step
+    horizon: int  # steps in an episode
+    particles_per_body: int  # observed particles per fluid body (downsampled)
+    spacing_cells: float = 0.5  # particle lattice spacing in grid cells
+
+
+class Task:
+    """Base class of the tasks. Subclasses set the class attributes and implement `_populate`, `_domain`,
+    `workspace`, `initial_tool_pose`, `loss`, `step_term` and `attraction`."""
+
+    name = ""
+    # --- set by subclasses ------------------------------------------------------------------------------
+    tool_name = "tool"
+    action_axes: tuple[int, ...] = (0, 1)  # indices into (vx, vy, vz, wx, wy, wz)
+    max_tool_speed = 0.15  # m/s, bound of each action component
+    softness = 400.0  # 1/m, of the tool with contact="soft" (the influence falls by e every 2.5 mm)
+    tool_friction = 0.0
+    reward_c1 = 1.0
+    reward_c2 = 1.0
+    observed_bodies: tuple[str, ...] = ()
+    target_body = ""  # the body DP's attraction term pulls the tool towards
+    camera = "iso"
+    periodic: tuple[int, int] | None = None  # (stroke steps, reset steps) of the paper's periodic policy
+    flange_to_tool = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0, 1.0)  # tool frame in the flange frame (m, quaternion xyzw)
+    sizes: dict[str, SizeConfig] = {}
+
+    def __init__(self, size: str = "small"):
+        self.size = size
+        if self.size not in SIZES:
+            raise ValueError(f"size must be one of {', '.join(SIZES)}, got {self.size!r}")
+        self.config: SizeConfig = self.sizes[self.size]
+        self._sims: dict = {}
+        self._initial_state: dict = {}
+        self._observe_index: dict | None = None
+        self._handles: dict | None = None
+
+    # --- scene ------------------------------------------------------------------------------------------
+    def _populate(self, scene, contact: str):
+        """Add statics, bodies and the tool to `scene` (subclasses)."""
+        raise NotImplementedError
+
+    def _domain(self) -> tuple[tuple, tuple]:
+        raise NotImplementedError
+
+    def scene(self, contact: str = "hard"):
+        """The task's Scene (not yet built) with the given tool contact."""
+        from fluidlab_core.scene import Scene
+
+        if contact not in CONTACTS:
+            raise ValueError(f"contact must be one of {', '.join(CONTACTS)}, got {contact!r}")
+        lower, upper = self._domain()
+        cfg = self.config
+        scene = Scene(lower=lower, upper=upper, grid_res=cfg.grid_res, dt=cfg.dt, substeps=1, seed=0)
+        scene.particle_spacing = cfg.spacing_cells * scene.dx
+        self._populate(scene, contact)
+        scene.substeps = max(scene.stable_substeps(), 10 if self.size == "paper" else 1)
+        return scene
+
+    def simulator(self, grad: bool = False, contact: str = "hard", grad_max_steps: int = 200):
+        """A simulator of the task, built once per (contact, grad) and cached. A gradient simulator also runs
+        the fast forward solver, so it serves forward calls of the same contact too."""
+        key = (contact, grad)
+        if key not in self._sims and not grad and (contact, True) in self._sims:
+            return self._sims[(contact, True)]
+        if key not in self._sims:
+            scene = self.scene(contact)
+            sim = scene.build(requires_grad=grad, grad_max_steps=grad_max_steps)
+            sim.check_finite_every = 10
+            self._sims[key] = sim
+            self._initial_state[id(sim)] = sim.get_state()
+        return self._sims[key]
+
+    def body_slice(self, body: str) -> slice:
+        """The rows of a particle body in the simulator's particle arrays (the same in every build)."""
+        if self._handles is None:
+            sim = next(iter(self._sims.values()), None)
+            self._handles = dict(sim.handles) if sim else {b.handle.name: b.handle for b in self.scene().bodies}
+        if body not in self._handles:
+            raise KeyError(f"{self.name} has no particle body {body!r}; bodies: {', '.join(self._handles)}")
+        return self._handles[body].slice
+
+    # --- start state and actions ------------------------------------------------------------------------
+    @property
+    def horizon(self) -> int:
+        return self.config.horizon
+
+    @property
+    def dt(self) -> float:
+        return self.config.dt
+
+    @property
+    def n_actions(self) -> int:
+        return len(self.action_axes)
+
+    def workspace(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds on the tool origin (m), as the scene gives them to the tool."""
+        raise NotImplementedError
+
+    def initial_tool_pose(self) -> np.ndarray:
+        """(x, y, z, qx, qy, qz, qw) of the tool frame at the start (m)."""
+        raise NotImplementedError
+
+    def reset(self, sim, tool_position=None):
+        """Put `sim` in the task's start state, optionally with the tool origin moved to `tool_position` (m,
+        clipped to the workspace)."""
+        state = dict(self._initial_state[id(sim)])
+        if tool_position is not None:
+            lo, hi = self.workspace()
+            pos = np.array(state["tool_position"], dtype=np.float64)
+            pos[0] = np.clip(np.asarray(tool_position, dtype=np.float64), lo, hi)
+            state["tool_position"] = pos
+        sim.set_state(state)
+
+    def twists(self, actions) -> np.ndarray:
+        """(N, 6) tool twists from (N, k) actions in the task's action space, clipped to ±max_tool_speed."""
+        a = np.asarray(actions, dtype=np.float64)
+        if a.ndim == 1 and self.n_actions == 1:
+            a = a[:, None]
+        if a.ndim != 2 or a.shape[1] != self.n_actions:
+            raise ValueError(f"{self.name} actions must have shape (N, {self.n_actions}) for axes "
+                             f"{self.action_axis_names()}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{self.name} actions contain NaN or infinity")
+        out = np.zeros((len(a), 6))
+        out[:, list(self.action_axes)] = np.clip(a, -self.max_tool_speed, self.max_tool_speed)
+        return out
+
+    def actions_from_twists(self, twists) -> np.ndarray:
+        tw = np.asarray(twists, dtype=np.float64)
+        return tw[:, list(self.action_axes)]
+
+    def action_axis_names(self) -> tuple[str, ...]:
+        names = ("vx", "vy", "vz", "wx", "wy", "wz")
+        return tuple(names[i] for i in self.action_axes)
+
+    # --- losses -----------------------------------------------------------------------------------------
+    def loss(self, horizon: int | None = None) -> losses.Loss:
+        """The task loss of a rollout of `horizon` steps (default: the task's horizon)."""
+        raise NotImplementedError
+
+    def step_term(self) -> losses.Loss:
+        """The per-step loss term ℓ_k behind the reward (evaluated after every step)."""
+        raise NotImplementedError
+
+    def attraction(self, weight: float) -> losses.Loss:
+        """DP's attraction term: pulls the tool towards the body it must move (see optim/dp.py)."""
+        from fluidlab_core.tasks.losses import ToolAttraction
+
+        return ToolAttraction(self.attraction_particles(), weight=weight)
+
+    def attraction_particles(self):
+        return self.body_slice(self.target_body)
+
+    def reward(self, step_loss: float) -> float:
+        return self.reward_c1 - self.reward_c2 * float(step_loss)
+
+    # --- evaluation -------------------------------------------------------------------------------------
+    def evaluate(self, actions, tool_position=None, sim=None, progress=None, rewards: bool = True) -> dict:
+        """Run the task from its start state with (N, k) actions on the reference physics (unless `sim` is
+        given). Returns {"loss", "step_losses", "clipped_steps"} and, with rewards=True, the per-step
+        "rewards" and their sum "return"."""
+        sim = sim or self.simulator()
+        twists = self.twists(actions)
+        self.reset(sim, tool_position)
+        step_losses = np.zeros(len(twists))
+        per_step = np.zeros(len(twists))
+        clipped = 0
+        term = self.step_term() if rewards else None
+        task_loss = self.loss(len(twists))
+        for k, tw in enumerate(twists, start=1):
+            info = sim.step(tw)
+            clipped += any(info["clipped"].values())
+            if task_loss.active(k, len(twists)) or term is not None:
+                state = self.step_state(sim)
+                step_losses[k - 1] = task_loss(state, len(twists))[0]
+                if term is not None:
+                    per_step[k - 1] = term(state, len(twists))[0]
+            if progress:
+                progress("forward", k, len(twists))
+        out = {"loss": float(step_losses.sum()), "step_losses": step_losses, "clipped_steps": int(clipped)}
+        if rewards:
+            r = self.reward_c1 - self.reward_c2 * per_step
+            out.update(rewards=r, **{"return": float(r.sum())})
+        return out
+
+    def step_state(self, sim) -> losses.StepState:
+        return losses.StepState(sim.step_count, sim.time, sim.positions(), sim.velocities(),
+                                sim.tools.position.copy(), sim.tools.rotation.copy())
+
+    # --- observations -----------------------------------------------------------------------------------
+    def observation_size(self) -> int:
+        return len(self.observed_bodies) * self.config.particles_per_body * 6 + 13
+
+    def observe(self, sim, tool_twist=None) -> np.ndarray:
+        """Downsampled positions (m) and velocities (m/s) of each observed body, then the tool pose (x, y, z,
+        qx, qy, qz, qw) and twist (m/s, rad/s); float32. The same particles are observed every step (a fixed
+        subset per body, chosen with a fixed seed)."""
+        if self._observe_index is None:
+            rng = np.random.default_rng(12345)
+            self._observe_index = {}
+            for body in self.observed_bodies:
+                h = sim.handle(body)
+                m = min(self.config.particles_per_body, h.count)
+                idx = np.sort(rng.choice(h.count, m, replace=False)) + h.start
+                if m < self.config.particles_per_body:  # repeat to keep the documented shape
+                    idx = np.resize(idx, self.config.particles_per_body)
+                self._observe_index[body] = idx
+        x, v = sim.positions(), sim.velocities()
+        parts = []
+        for body in self.observed_bodies:
+            idx = self._observe_index[body]
+            parts += [x[idx].ravel(), v[idx].ravel()]
+        parts.append(sim.tool_pose(self.tool_name))
+        parts.append(np.zeros(6) if tool_twist is None else np.asarray(tool_twist, dtype=np.float64))
+        return np.concatenate(parts).astype(np.float32)
+
+    # --- trajectories -----------------------------------------------------------------------------------
+    def trajectory(self, actions, tool_position=None, method="", seed=None, loss_history=(), metadata=None
+                   ) -> Trajectory:
+        """A Trajectory document (DESIGN.md §4) of these actions from the start state."""
+        pose = self.initial_tool_pose().copy()
+        if tool_position is not None:
+            lo, hi = self.workspace()
+            pose[:3] = np.clip(tool_position, lo, hi)
+        meta = {"size": self.size, "flange_to_tool": list(self.flange_to_tool),
+                "action_axes": list(self.action_axis_names())}
+        meta.update(metadata or {})
+        return Trajectory(task=self.name, dt=self.dt, tool=self.tool_name, initial_pose=pose,
+                          twists=self.twists(actions), frame_id=FRAME_ID, method=method, seed=seed,
+                          loss_history=list(loss_history), metadata=meta)
+
+    def actions_from_trajectory(self, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+        """(actions (N, k), initial tool position (3,)) of a trajectory written for this task; refuses
+        trajectories of another task, time step or horizon, and twists outside the action axes."""
+        if traj.task != self.name:
+            raise ValueError(f"the trajectory is for task {traj.task!r}, not {self.name!r}")
+        if abs(traj.dt - self.dt) > 1e-12:
+            raise ValueError(f"the trajectory's dt {traj.dt} s differs from {self.name} ({self.size}) dt {self.dt} s")
+        other = [i for i in range(6) if i not in self.action_axes]
+        if np.any(np.abs(traj.twists[:, other]) > 1e-12):
+            raise ValueError(f"the trajectory moves the tool along axes {self.name} does not use (only "
+                             f"{self.action_axis_names()})")
+        return self.actions_from_twists(traj.twists), traj.initial_pose[:3].copy()
