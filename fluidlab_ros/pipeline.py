@@ -33,6 +33,7 @@ from fluidlab_ros.timescale import TimeMap, choose_time_map
 from fluidlab_ros.verify import ticks_per_command, verify
 
 PLAN_FRACTION = 0.9  # the smoothing stage plans within 90 % of (margin x limit); the verifier checks margin x limit
+TIME_MAP_SHARE = 0.9  # the time map uses 90 % of the smoothing stage's acceleration budget, leaving it headroom
 BASE_FRAMES = ("fr3_link0", "panda_link0", "base")  # both arms' base frames are the same physical frame
 
 
@@ -217,14 +218,16 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         _check_positions(app.q, lim, position_margin, "approach")
         q_now = app.q[-1]
         res_p, res_r = max(res_p, app.residual_position.max()), max(res_r, app.residual_rotation.max())
-        tmap, sr = choose_time_map(app.q, app_dt, v_plan, a_plan, j_plan, accel_window, max_time_scale)
+        tmap, sr = choose_time_map(app.q, app_dt, v_plan, TIME_MAP_SHARE * a_plan, j_plan, accel_window,
+                                   max_time_scale)
         if not np.isfinite(sr.scale) or sr.scale > max_time_scale:
             raise LimitError(f"the approach to the first pose needs a {sr.scale:.3g}x slow-down ({sr.binding})")
         segments.append(_Segment("approach", app_poses, app_dt, app.q, tmap, clamped=False))
     task = ik.track(task_poses, q_now, trajectory.dt, q_posture=q_now, what="trajectory")
     res_p, res_r = max(res_p, task.residual_position.max()), max(res_r, task.residual_rotation.max())
     _check_positions(task.q, lim, position_margin)
-    tmap, sr = choose_time_map(task.q, trajectory.dt, v_plan, a_plan, j_plan, accel_window, max_time_scale)
+    tmap, sr = choose_time_map(task.q, trajectory.dt, v_plan, TIME_MAP_SHARE * a_plan, j_plan, accel_window,
+                               max_time_scale)
     if not np.isfinite(sr.scale) or sr.scale > max_time_scale:
         raise LimitError(f"the trajectory is too fast for the {robot.name}: it needs a {sr.scale:.3g}x slow-down "
                          f"({sr.binding}; peak joint speed {sr.velocity_ratio:.3g}x and windowed acceleration "
@@ -235,15 +238,14 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
     # reference at the control ticks, then jerk-limited smoothing
     starts = np.cumsum([0.0] + [s.tmap.duration for s in segments])
     total = starts[-1]
-    ticks = np.arange(1, int(np.ceil(total / period)) + 1) * period
-    seg_of_tick = np.searchsorted(starts[1:-1], ticks, side="right")
-    ref = [np.empty((len(ticks), robot.dof)) for _ in range(3)]
-    for k, (seg, t0) in enumerate(zip(segments, starts[:-1])):
-        m = seg_of_tick == k
-        for dst, val in zip(ref, seg.reference(ticks[m] - t0)):
-            dst[m] = val
+
+    def reference(t: float):
+        k = min(int(np.searchsorted(starts[1:-1], t, side="right")), len(segments) - 1)
+        p, v, a = segments[k].reference(np.array([t - starts[k]]))
+        return p[0], v[0], a[0]
+
     follower = JerkLimitedFollower(robot.dof, period, a_plan, j_plan, v_plan)
-    sm = follower.run(q_start, *ref)
+    sm = follower.run(q_start, reference, total)
     commands = np.vstack([np.diff(sm.position, axis=0) / period, np.zeros((1, robot.dof))])
     positions = np.vstack([sm.position, sm.position[-1:]])
 

@@ -12,12 +12,14 @@ not (an abrupt start), and a uniform factor s >= 1 slows the whole segment down 
 accelerations would exceed the planning limits. The scale is the smallest s with
 
     |q'(r)| / s          <= v_plan(q)           (per joint, directional, position-based for the FR3)
-    |q''_W(r)| / s^2     <= a_plan / 2          (q''_W: acceleration averaged over a window W)
+    |q''_W(r)| / s^2     <= PATH_SHARE a_plan   (q''_W: acceleration averaged over a window W)
 
 The acceleration is averaged over `accel_window` because trajectories are piecewise-constant twists: the
 instantaneous acceleration at a twist change is unbounded, and the jerk-limited smoothing after this pass
-rounds such corners (its path deviation is measured and bounded by the pipeline). The ramp durations make the
-ramp terms q' r'' and q' r''' stay under the other half of the acceleration and jerk budgets.
+rounds such corners (its path deviation is measured and bounded by the pipeline); the rest of the budget is
+its headroom. Inside a ramp the joint acceleration is q'' r'^2 + q' r'' = S(x)^2 A + S'(x) V / (s T) with A
+and V the path's peak |q''_W| / s^2 and |q'| over the ramp: T is the shortest ramp with that sum within
+a_plan for every x, and with the ramp's jerk term q' r''' = S''(x) V / (s T^2) within half the jerk budget.
 """
 from __future__ import annotations
 
@@ -27,6 +29,8 @@ import numpy as np
 
 _S_PRIME_MAX = 1.875  # max of S'(x) = 30x^2 - 60x^3 + 30x^4
 _S_SECOND_MAX = 5.7735026918962585  # max |S''(x)| = 10/sqrt(3)
+PATH_SHARE = 0.8  # share of the acceleration budget the path may use at the scaled speed
+_X = np.linspace(0.0, 1.0, 201)[1:-1]  # ramp phase grid
 
 
 def _smooth(x):
@@ -104,7 +108,7 @@ def choose_time_map(q: np.ndarray, dt: float, velocity_bounds, a_plan: np.ndarra
                     accel_window: float, max_scale: float, ramp_in: bool = True, ramp_out: bool = True):
     """Time map for the IK samples q (N + 1, dof) spaced dt in trajectory time. `velocity_bounds(q)` gives
     the planning velocity bounds (lo, hi) at positions q; a_plan and j_plan are the acceleration and jerk
-    budgets of the smoothing stage (half of each goes to the path, half to the ramps). Returns (TimeMap, ScaleReport); the report's scale
+    budgets of the smoothing stage. Returns (TimeMap, ScaleReport); the report's scale
     may exceed max_scale (the caller refuses then)."""
     qd = np.diff(q, axis=0) / dt  # per-step joint velocity in trajectory time (rad/s at s = 1)
     mid = 0.5 * (q[1:] + q[:-1])
@@ -113,7 +117,7 @@ def choose_time_map(q: np.ndarray, dt: float, velocity_bounds, a_plan: np.ndarra
         vr = np.where(qd > 0, qd / hi, np.where(qd < 0, qd / lo, 0.0))
     vr = np.where(np.isfinite(vr), vr, np.inf)  # moving against a zero bound: not executable at any speed
     acc = windowed_acceleration(qd, dt, accel_window)
-    ar = np.abs(acc) / (0.5 * a_plan) if len(acc) else np.zeros((1, q.shape[1]))
+    ar = np.abs(acc) / (PATH_SHARE * a_plan) if len(acc) else np.zeros((1, q.shape[1]))
     v_ratio, a_ratio = float(vr.max(initial=0.0)), float(ar.max(initial=0.0))
     s = max(1.0, v_ratio, np.sqrt(a_ratio))
     binding = "none"
@@ -126,22 +130,28 @@ def choose_time_map(q: np.ndarray, dt: float, velocity_bounds, a_plan: np.ndarra
     if not np.isfinite(s):
         return TimeMap(length, s, 0.0, 0.0), ScaleReport(s, v_ratio, a_ratio, binding)
     while True:
-        tin = _ramp(qd, dt, s, a_plan, j_plan, start=True) if ramp_in else 0.0
-        tout = _ramp(qd, dt, s, a_plan, j_plan, start=False) if ramp_out else 0.0
+        tin = _ramp(qd, acc, dt, s, a_plan, j_plan, start=True) if ramp_in else 0.0
+        tout = _ramp(qd, acc, dt, s, a_plan, j_plan, start=False) if ramp_out else 0.0
         if (tin + tout) / (2 * s) <= length or s > max_scale:
             break
         s *= 1.25  # ramps longer than the segment: slow down, which shortens them in trajectory time
     return TimeMap(length, s, tin, tout), ScaleReport(s, v_ratio, a_ratio, binding)
 
 
-def _ramp(qd, dt, s, a_plan, j_plan, start: bool) -> float:
-    """Ramp duration T (s) such that |q'| S'/(s T) <= a_plan / 2 and |q'| S''/(s T^2) <= j_plan / 2 over the
-    part of the path the ramp covers (found by two fixed-point passes)."""
+def _ramp(qd, acc, dt, s, a_plan, j_plan, start: bool) -> float:
+    """Ramp duration T (s) such that S(x)^2 A + S'(x) V / (s T) <= a_plan and S''(x) V / (s T^2) <= j_plan / 2
+    for every phase x, with V = max |q'| and A = max |q''_W| / s^2 over the part of the path the ramp covers
+    (found by a few fixed-point passes, since that part depends on T)."""
+    sx, sdx = _smooth(_X), _smooth_d(_X)
     t_ramp = 0.0
-    for _ in range(3):
+    for _ in range(4):
         n = max(1, int(np.ceil(t_ramp / (2 * s) / dt)) + 1)
         v = np.abs(qd[:n] if start else qd[-n:]).max(axis=0)
-        t_acc = np.max(2 * _S_PRIME_MAX * v / (s * a_plan))
+        a = np.abs(acc[:n] if start else acc[-n:]).max(axis=0) / s ** 2 if len(acc) else np.zeros_like(v)
+        # largest B = V / (s T) with S^2 A + S' B <= a_plan at every phase, per joint
+        room = np.min((a_plan[None, :] - sx[:, None] ** 2 * a[None, :]) / sdx[:, None], axis=0)
+        room = np.maximum(room, 1e-3 * a_plan)  # the path alone uses the budget: make the ramp long
+        t_acc = np.max(v / (s * room))
         t_jerk = np.max(np.sqrt(2 * _S_SECOND_MAX * v / (s * j_plan)))
         t_new = float(max(t_acc, t_jerk))
         if t_new <= t_ramp * 1.0001:
