@@ -74,9 +74,9 @@ FR3 = dict(lower=np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, 
            acceleration=np.full(7, 10.0), jerk=np.full(7, 5000.0))
 
 
-def independent_check(p, margin=MARGIN):
-    """Hold each command for 1 ms ticks and check the FR3's limits by finite differences; returns the
-    1 ms positions."""
+def independent_check(p, margin=MARGIN, lost_command=True):
+    """Hold each command for 1 ms ticks and check the FR3's limits by finite differences, also when one
+    command is lost (the next then brings two commands' change in one tick); returns the 1 ms positions."""
     n = int(round(1000 / p.control_rate))
     v = np.repeat(p.velocities, n, axis=0)
     q = p.q_start + 1e-3 * np.vstack([np.zeros((1, 7)), np.cumsum(v, axis=0)])
@@ -90,6 +90,11 @@ def independent_check(p, margin=MARGIN):
     assert np.all(np.abs(acc) <= margin * FR3["acceleration"])
     assert np.all(np.abs(jerk) <= margin * FR3["jerk"])
     assert np.all(p.velocities[-1] == 0.0)
+    if lost_command:
+        c = np.vstack([np.zeros((1, 7)), p.velocities, np.zeros((1, 7))])
+        jump = np.abs(c[2:] - c[:-2])
+        assert np.all(jump / 1e-3 <= margin * FR3["acceleration"])
+        assert np.all(jump / 1e-6 <= margin * FR3["jerk"])
     return q
 
 
