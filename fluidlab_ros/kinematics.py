@@ -10,9 +10,9 @@ One step is
 where lambda grows from `damping` to `max_damping` as the smallest singular value of J_e falls below
 `singular_threshold` (adaptive damping near singularities), and the null-space velocity z (rad/s) pulls
 each joint away from its limits inside a band of `limit_band` rad and towards a posture q_posture. Along a
-path, each target is solved from the previous solution: a null-space step once per sample
-(it is a velocity over the sample's dt), followed by plain DLS iterations until the residual is below
-tolerance.
+path, each target is solved from the previous solution: the first step of each sample carries the
+null-space term (it is a velocity over the sample's dt), then plain DLS iterations run until the residual is
+below tolerance.
 A target whose residual stays above `reject_position` / `reject_rotation` is refused as unreachable.
 """
 from __future__ import annotations
@@ -58,13 +58,10 @@ class DifferentialIK:
 
     def _error_and_jacobian(self, q, target: pin.SE3):
         model, data, fid = self.robot.model, self.robot.data, self.robot.tool_id
-        pin.forwardKinematics(model, data, q)
-        current = pin.updateFramePlacement(model, data, fid)
-        cMt = current.actInv(target)
-        err = pin.log6(cMt).vector
-        jac = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)
-        jac_e = -pin.Jlog6(cMt.inverse()) @ jac
-        return err, jac_e
+        pin.computeJointJacobians(model, data, q)  # forward kinematics and joint Jacobians in one pass
+        cMt = pin.updateFramePlacement(model, data, fid).actInv(target)
+        jac = pin.getFrameJacobian(model, data, fid, pin.LOCAL)
+        return pin.log6(cMt).vector, -pin.Jlog6(cMt.inverse()) @ jac
 
     def _dls(self, jac_e):
         o = self.opt
@@ -87,20 +84,21 @@ class DifferentialIK:
 
     def solve(self, target: pin.SE3, q, null_velocity=None, dt: float = 0.0):
         """Joint positions reaching `target` from q; returns (q, position residual m, rotation residual rad,
-        iterations). The null-space velocity (rad/s) is applied over dt first (projected at q), then plain DLS
-        iterations remove the pose error."""
+        iterations). The first step adds the null-space velocity (rad/s) over dt, projected at q, to the DLS
+        step; later iterations are plain DLS until the residual is below tolerance."""
         o = self.opt
         q = np.array(q, dtype=float)
-        if null_velocity is not None and dt > 0:
-            _, jac_e = self._error_and_jacobian(q, target)
-            pinv = self._dls(jac_e)
-            q = q + (np.eye(len(q)) - pinv @ jac_e) @ (null_velocity * dt)
+        with_null = null_velocity is not None and dt > 0
         for it in range(o.max_iterations + 1):
             err, jac_e = self._error_and_jacobian(q, target)
             res_p, res_r = np.linalg.norm(err[:3]), np.linalg.norm(err[3:])
-            if (res_p < o.tol_position and res_r < o.tol_rotation) or it == o.max_iterations:
+            converged = res_p < o.tol_position and res_r < o.tol_rotation
+            if (converged and not (it == 0 and with_null)) or it == o.max_iterations:
                 break
-            dq = -self._dls(jac_e) @ err
+            pinv = self._dls(jac_e)
+            dq = -pinv @ err
+            if it == 0 and with_null:
+                dq += (np.eye(len(q)) - pinv @ jac_e) @ (null_velocity * dt)
             step = np.max(np.abs(dq))
             if step > o.max_step:
                 dq *= o.max_step / step

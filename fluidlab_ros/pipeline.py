@@ -63,7 +63,8 @@ class PlanReport:
     tool_orientation_error: float = 0.0  # rad, max over the task segment
     approach_path_error: float = 0.0  # m
     lagging_ticks: int = 0  # control ticks where smoothing could not follow the reference exactly
-    planning_time: float = 0.0  # s of CPU wall time for plan()
+    planning_time: float = 0.0  # s of wall time for plan()
+    stage_times: dict = field(default_factory=dict)  # s per stage: ik, time_scaling, smoothing, verify, path_error
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -128,10 +129,10 @@ def _approach_poses(start: np.ndarray, goal: np.ndarray, dt: float, speed: float
 class _Segment:
     """IK samples of one segment, their spline q(r) and time map t -> r."""
 
-    def __init__(self, name, poses, dt, q, tmap: TimeMap, clamped: bool):
+    def __init__(self, name, poses, dt, q, tmap: TimeMap):
         self.name, self.poses, self.dt, self.q, self.tmap = name, poses, dt, q, tmap
         r = np.arange(len(q)) * dt
-        self.spline = CubicSpline(r, q, axis=0, bc_type="clamped" if clamped else "not-a-knot")
+        self.spline = CubicSpline(r, q, axis=0, bc_type="not-a-knot")  # ends need not be at rest: ramps
 
     def reference(self, t):
         r, rd, rdd = self.tmap(t)
@@ -202,6 +203,15 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         lo, hi = lim.velocity_bounds(q)
         return PLAN_FRACTION * margin * lo, PLAN_FRACTION * margin * hi
 
+    stages = {"ik": 0.0, "time_scaling": 0.0}
+    mark = time.perf_counter()
+
+    def lap(name):
+        nonlocal mark
+        now = time.perf_counter()
+        stages[name] = stages.get(name, 0.0) + now - mark
+        mark = now
+
     # tool poses and IK
     task_poses = _task_poses(trajectory, mounting, robot)
     ik = DifferentialIK(robot, ik_options)
@@ -215,6 +225,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         app_poses, app_dt, app_speed = _approach_poses(start_pose, task_poses[0], min(trajectory.dt, 0.01), approach_speed,
                                             approach_angular_speed)
         app = ik.track(app_poses, q_now, app_dt, q_posture=q_start, what="approach", null_weight=app_speed)
+        lap("ik")
         _check_positions(app.q, lim, position_margin, "approach")
         q_now = app.q[-1]
         res_p, res_r = max(res_p, app.residual_position.max()), max(res_r, app.residual_rotation.max())
@@ -222,9 +233,11 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                                    max_time_scale)
         if not np.isfinite(sr.scale) or sr.scale > max_time_scale:
             raise LimitError(f"the approach to the first pose needs a {sr.scale:.3g}x slow-down ({sr.binding})")
-        segments.append(_Segment("approach", app_poses, app_dt, app.q, tmap, clamped=False))
+        segments.append(_Segment("approach", app_poses, app_dt, app.q, tmap))
+        lap("time_scaling")
     task = ik.track(task_poses, q_now, trajectory.dt, q_posture=q_now, what="trajectory")
     res_p, res_r = max(res_p, task.residual_position.max()), max(res_r, task.residual_rotation.max())
+    lap("ik")
     _check_positions(task.q, lim, position_margin)
     tmap, sr = choose_time_map(task.q, trajectory.dt, v_plan, TIME_MAP_SHARE * a_plan, j_plan, accel_window,
                                max_time_scale)
@@ -233,7 +246,8 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                          f"({sr.binding}; peak joint speed {sr.velocity_ratio:.3g}x and windowed acceleration "
                          f"{sr.acceleration_ratio:.3g}x the planning limits), more than max_time_scale = "
                          f"{max_time_scale}", scale=sr.scale)
-    segments.append(_Segment("task", task_poses, trajectory.dt, task.q, tmap, clamped=False))
+    segments.append(_Segment("task", task_poses, trajectory.dt, task.q, tmap))
+    lap("time_scaling")
 
     # reference at the control ticks, then jerk-limited smoothing
     starts = np.cumsum([0.0] + [s.tmap.duration for s in segments])
@@ -244,16 +258,25 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         p, v, a = segments[k].reference(np.array([t - starts[k]]))
         return p[0], v[0], a[0]
 
+    ticks = np.minimum(np.arange(1, int(np.ceil(total / period - 1e-9)) + 1) * period, total)
+    seg_of_tick = np.minimum(np.searchsorted(starts[1:-1], ticks, side="right"), len(segments) - 1)
+    at_ticks = [np.empty((len(ticks), robot.dof)) for _ in range(3)]
+    for k, (seg, t0) in enumerate(zip(segments, starts[:-1])):
+        m = seg_of_tick == k
+        for dst, val in zip(at_ticks, seg.reference(ticks[m] - t0)):
+            dst[m] = val
     follower = JerkLimitedFollower(robot.dof, period, a_plan, j_plan, v_plan)
-    sm = follower.run(q_start, reference, total)
+    sm = follower.run(q_start, reference, total, at_ticks)
     commands = np.vstack([np.diff(sm.position, axis=0) / period, np.zeros((1, robot.dof))])
     positions = np.vstack([sm.position, sm.position[-1:]])
+    lap("smoothing")
 
     ver = verify(commands, q_start, control_rate, lim, margin, position_margin, tolerate_lost_command, robot)
     if not ver.ok:
         raise LimitError("the command stream would violate the arm's limits: " + "; ".join(ver.violations),
                          violations=ver.violations)
 
+    lap("verify")
     # tool-path error: executed (FK of the 1 ms hold-model positions) against the planned, timed tool path
     tau = lim.check_period
     t_ms = np.arange(len(ver.positions)) * tau
@@ -276,6 +299,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                         f"{max_path_error * 1e3:.3g} mm, {np.degrees(max_orientation_error):.3g} deg",
                         tool_path_error=float(e_p.max()))
 
+    lap("path_error")
     peak = ver.summary()
     report = PlanReport(
         robot=robot.name, control_rate=control_rate, margin=margin, position_margin=position_margin,
@@ -287,7 +311,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         peak=peak, peak_per_joint={k: np.atleast_1d(v).tolist() for k, v in ver.peak.items()},
         tool_path_error=float(e_p.max()), tool_path_error_rms=float(np.sqrt(np.mean(e_p ** 2))),
         tool_orientation_error=float(e_r.max()), approach_path_error=app_err, lagging_ticks=len(sm.lagging_ticks),
-        planning_time=time.perf_counter() - t_begin)
+        planning_time=time.perf_counter() - t_begin, stage_times=stages)
     return Plan(robot=robot.name, joint_names=robot.joint_names, control_rate=control_rate, q_start=q_start,
                 times=np.arange(len(commands)) * period, velocities=commands, positions=positions,
                 task_start_time=float(starts[-2]), task_end_time=float(starts[-1]), task_time_map=tmap,

@@ -40,9 +40,11 @@ class JerkLimitedFollower:
         self.dof, self.period = dof, period
         self.acc, self.jerk, self.velocity_bounds = np.asarray(acceleration), np.asarray(jerk), velocity_bounds
 
-    def run(self, q0, reference, duration: float, max_settle_ticks: int = 20000) -> Smoothed:
+    def run(self, q0, reference, duration: float, at_ticks=None, max_settle_ticks: int = 20000) -> Smoothed:
         """Follow `reference(t) -> (position, velocity, acceleration)` (arrays of shape (dof,), t in s) for
-        t in [0, duration], starting at rest at q0, then come to rest at reference(duration)."""
+        t in [0, duration], starting at rest at q0, then come to rest at reference(duration). `at_ticks`
+        optionally holds the reference at the ticks t = T, 2T, ... (three arrays (K, dof)), precomputed in
+        one vectorised call; `reference` is then only called to intercept."""
         T = self.period
         otg, inp, traj = Ruckig(self.dof), InputParameter(self.dof), Trajectory(self.dof)
         inp.current_position, inp.current_velocity, inp.current_acceleration = list(q0), [0.0] * self.dof, \
@@ -62,8 +64,13 @@ class JerkLimitedFollower:
             inp.max_velocity, inp.min_velocity = list(np.maximum(hi, 1e-9)), list(np.minimum(lo, -1e-9))
             t_target = (k + 1) * T
             following = k < n_ref
-            for _ in range(INTERCEPT_PASSES if following else 1):
-                p_ref, v_ref, a_ref = reference(min(t_target, duration)) if following else final
+            for attempt in range(INTERCEPT_PASSES if following else 1):
+                if not following:
+                    p_ref, v_ref, a_ref = final
+                elif attempt == 0 and at_ticks is not None:
+                    p_ref, v_ref, a_ref = at_ticks[0][k], at_ticks[1][k], at_ticks[2][k]
+                else:
+                    p_ref, v_ref, a_ref = reference(min(t_target, duration))
                 inp.target_position = list(p_ref)
                 inp.target_velocity = list(np.clip(v_ref, lo, hi))
                 inp.target_acceleration = list(np.clip(a_ref, -self.acc, self.acc))
