@@ -18,17 +18,27 @@ INSTALL_REQUIRES = [
     "gymnasium==1.4.0",
     "cma==4.5.0",
     "imageio-ffmpeg==0.8.1",  # ships the ffmpeg binary that encodes the MP4 videos
+    "pin==4.1.0",  # Pinocchio: URDF kinematics for the execution pipeline (fluidlab_ros)
+    "ruckig==0.19.4",  # jerk-limited smoothing at the control rate
 ]
+
+# example-robot-data (414 MB of meshes) is only the Panda URDF that tests/test_pipeline.py cross-checks
+# robot_models/ against; it is a test extra, not a runtime dependency.
+TEST_REQUIRES = ["pytest==9.2.0", "example-robot-data==6.0.0"]
 
 setup(
     name=PACKAGE,
     version="0.1.0",
     description="Differentiable multi-material fluid simulation for robot trajectories, with a ROS 2 node",
-    packages=find_packages(include=["fluidlab_core", "fluidlab_core.*", "fluidlab_ros", "fluidlab_ros.*"]),
+    packages=find_packages(include=["fluidlab_core", "fluidlab_core.*", "fluidlab_ros", "fluidlab_ros.*",
+                                    "robot_models"]),
+    # robot_models is a package directory: its URDFs, limits and mountings install with it and are found
+    # through robot_models.urdf_path() / limits_path() / mounting_path(), from a wheel as from the source tree.
+    package_data={"robot_models": ["*.json", "*/*.urdf", "*/*.json", "README.md"],
+                  "fluidlab_core.tasks": ["data/*.npz"]},
     python_requires=">=3.11",
     install_requires=INSTALL_REQUIRES,
-    package_data={"fluidlab_core.tasks": ["data/*.npz"]},
-    extras_require={"test": ["pytest==9.2.0"]},
+    extras_require={"test": TEST_REQUIRES},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
