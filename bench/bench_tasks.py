@@ -70,7 +70,7 @@ def zero_losses(size) -> dict:
     import fluidlab_core
     from fluidlab_core import tasks
 
-    fluidlab_core.init(arch="cpu", precision="f64")
+    fluidlab_core.init(arch="cpu", precision="f32")
     out = {}
     for name in TASKS:
         t = tasks.make(name, size)

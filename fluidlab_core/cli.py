@@ -10,9 +10,8 @@
     fluidlab render TRAJECTORY.json [--out DIR] [--every N] [--no-mp4]
 
 Every simulating subcommand takes --arch (cpu, cuda, auto) and --precision (f32, f64); the default is the
-CPU in float32, except optimise, evaluate and render, which default to float64: the gradients are validated
-in float64 (float32 gradients of elastic bodies can overflow, docs/engine.md), and a trajectory is evaluated
-in the precision it was optimised in.
+CPU in float32. A trajectory's report records the precision it was optimised in; evaluate it in the same one
+to reproduce the reported loss exactly.
 """
 from __future__ import annotations
 
@@ -198,13 +197,13 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="small", choices=["small", "paper"])
     p.add_argument("--name", default=None, help="trajectory name (default METHOD_seedS_SIZE)")
     p.add_argument("--root", default="trajectories", help="folder of trajectories (default ./trajectories)")
-    _add_backend(p, "f64")
+    _add_backend(p)
     p.set_defaults(func=_cmd_optimise)
 
     p = sub.add_parser("evaluate", help="loss and return of a trajectory on its task's reference physics")
     p.add_argument("trajectory", help="a trajectory JSON file")
     p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
-    _add_backend(p, "f64")
+    _add_backend(p)
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("render", help="play a trajectory and write PNG frames and an MP4")
@@ -213,7 +212,7 @@ def main(argv=None) -> int:
     p.add_argument("--every", type=int, default=2, help="steps between frames (default 2)")
     p.add_argument("--no-mp4", action="store_true", help="frames only")
     p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
-    _add_backend(p, "f64")
+    _add_backend(p)
     p.set_defaults(func=_cmd_render)
 
     args = parser.parse_args(argv)

@@ -33,3 +33,49 @@ def test_materials_lists_the_catalogue(capsys):
 def test_bad_options_fail_with_a_message(capsys):
     assert cli.main(["demo", "--duration", "-1"]) == 2
     assert "duration must be positive" in capsys.readouterr().err
+
+
+def _fluidlab(*args, timeout=900):
+    return subprocess.run([sys.executable, "-m", "fluidlab_core.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_list_shows_every_task(capsys):
+    assert cli.main(["list"]) == 0
+    out = capsys.readouterr().out
+    for name in ("LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard"):
+        assert out.count(name) == 2  # small and paper
+
+
+def test_optimise_evaluate_render_round_trip(tmp_path):
+    """optimise writes a trajectory and a report atomically; evaluate reproduces the report's loss; render
+    writes PNG frames and an MP4; a bad trajectory file is refused with the reason."""
+    import json
+
+    root = tmp_path / "trajectories"
+    run = _fluidlab("optimise", "GatheringEasy", "--method", "cma-es", "--budget", "200", "--seed", "1",
+                    "--root", str(root), "--name", "t1")
+    assert run.returncode == 0, run.stderr
+    assert "steps 200/200" in run.stderr  # the progress bar
+    traj_path = root / "GatheringEasy" / "t1.json"
+    report = json.loads((root / "GatheringEasy" / "t1.report.json").read_text())
+    assert report["steps_used"] == 200 and report["method"] == "cma-es"
+    assert sorted(p.name for p in (root / "GatheringEasy").iterdir()) == ["t1.json", "t1.report.json"]  # no temp
+    ev = _fluidlab("evaluate", str(traj_path))
+    assert ev.returncode == 0, ev.stderr
+    assert f"loss {report['final_loss']:.6g}" in ev.stdout
+    out = tmp_path / "render"
+    rn = _fluidlab("render", str(traj_path), "--out", str(out), "--every", "25")
+    assert rn.returncode == 0, rn.stderr
+    assert sorted(p.name for p in out.glob("frame_*.png")) == [f"frame_{k:04d}.png" for k in (0, 25, 50, 75, 100)]
+    mp4 = (out / "episode.mp4").read_bytes()
+    assert len(mp4) > 1000 and mp4[4:8] == b"ftyp"
+    bad = tmp_path / "bad.json"
+    doc = json.loads(traj_path.read_text())
+    doc["version"] = 99
+    bad.write_text(json.dumps(doc))
+    assert cli.main(["evaluate", str(bad)]) == 2
+    doc["version"], doc["twists"][3][0] = 1, None
+    bad.write_text(json.dumps(doc))
+    rc = _fluidlab("evaluate", str(bad))
+    assert rc.returncode == 2 and "twists" in rc.stderr

@@ -395,7 +395,7 @@ class DiffMPMSolver:
         """Node velocities: gravity, statics, tools at their slot-s pose, walls."""
         for I in ti.grouped(self.grid_m):
             m = self.grid_m[I]
-            if m > 0.0:
+            if m > self.fast.mass_floor:  # see MPMSolver.mass_floor
                 vn = self.grid_mv[I] / m + self.dt * ti.Vector(self.fast.gravity)
                 xn = ti.Vector(self.fast.origin) + I * self.dx
                 for k in ti.static(range(len(self.colliders))):

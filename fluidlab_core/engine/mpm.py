@@ -70,6 +70,13 @@ class MPMSolver:
         self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD
                                 for d in range(3))
         self.gravity = tuple(float(g) for g in spec.gravity)
+        # Nodes lighter than this are treated as empty. A node at the edge of a particle's stencil can get a
+        # weight of 1e-20 or less; its mass squared underflows in float32 and the gradient of v = mv/m
+        # (−mv/m²) overflows to inf, then NaN. A millionth of the lightest particle's mass drops only nodes
+        # whose velocity reaches particles with weights under 1e-6.
+        rest = np.asarray(spec.rest_volume, dtype=np.float64)
+        dens = np.array([m.density for m in spec.materials])[np.asarray(spec.material_index)]
+        self.mass_floor = float(1e-6 * (rest * dens).min()) if n else 0.0
 
         # models present in the scene, unrolled statically in P2G
         self.model_names = sorted({m.model for m in spec.materials})
@@ -207,7 +214,7 @@ class MPMSolver:
         # grid update
         for I in ti.grouped(self.grid_m):
             m = self.grid_m[I]
-            if m > 0.0:
+            if m > self.mass_floor:
                 vn = self.grid_v[I] / m + dt * ti.Vector(self.gravity)
                 xn = ti.Vector(self.origin) + I * dx
                 for k in ti.static(range(len(self.spec.colliders))):

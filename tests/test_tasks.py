@@ -1,0 +1,185 @@
+"""Tasks, environments and trajectory parametrisations: every registered task builds, resets, steps, observes
+what it documents, conserves mass and stays finite; the task losses' gradients match finite differences;
+Gymnasium's checker passes."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from fluidlab_core import losses, tasks
+from fluidlab_core.optim import params as P
+from fluidlab_core.tasks import goals
+from fluidlab_core.tasks.losses import ChamferToGoal, NegativeSpread, ToolAttraction
+
+TASKS = ["LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard"]
+
+
+def test_registry_names_and_unknown():
+    assert tasks.names() == TASKS
+    with pytest.raises(KeyError, match="known tasks: LatteArtStir, Mixing, GatheringEasy, GatheringHard"):
+        tasks.make("LatteArt")
+    with pytest.raises(ValueError, match="size must be one of small, paper"):
+        tasks.make("Mixing", size="huge")
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_paper_size_follows_the_paper(name):
+    """The paper's configuration: 64³ grid, about 100k particles, 2 ms steps of at least 10 substeps."""
+    scene = tasks.make(name, "paper").scene()
+    n = sum(b.handle.count for b in scene.bodies)
+    assert scene.grid_res == 64 and scene.dt == 2e-3 and scene.substeps >= 10
+    assert 60_000 <= n <= 140_000, n
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_task_builds_resets_steps_and_conserves_mass(name):
+    task = tasks.make(name, "small")
+    sim = task.simulator()
+    task.reset(sim)
+    x0 = sim.positions()
+    mass0 = sim.masses().sum()
+    volume0 = sim.volumes().sum()
+    obs0 = task.observe(sim)
+    assert obs0.shape == (task.observation_size(),) == (len(task.observed_bodies) * 64 * 6 + 13,)
+    assert obs0.dtype == np.float32
+    np.testing.assert_allclose(obs0[-13:-6], task.initial_tool_pose(), atol=1e-6)  # tool pose at the start
+    for _ in range(20):
+        sim.step(task.twists(np.zeros((1, task.n_actions)))[0])
+    x = sim.positions()
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(sim.velocities()))
+    assert len(x) == len(x0) and sim.masses().sum() == pytest.approx(mass0, rel=1e-12)
+    # nothing leaves the domain
+    lo, hi = sim.scene.lower, sim.scene.upper
+    assert np.all(x >= lo - 1e-9) and np.all(x <= hi + 1e-9)
+    # with the tool at rest, a settled liquid moves little and its volume stays within weak compressibility
+    assert np.abs(x - x0).max() < 0.01
+    assert sim.volumes().sum() == pytest.approx(volume0, rel=0.03)
+    loss = task.evaluate(np.zeros((task.horizon, task.n_actions)), rewards=True)
+    assert np.isfinite(loss["loss"]) and np.isfinite(loss["return"]) and len(loss["rewards"]) == task.horizon
+    # reset restores the start exactly
+    task.reset(sim)
+    np.testing.assert_array_equal(sim.positions(), x0)
+
+
+def test_latte_art_goal_is_reached_by_its_own_script():
+    """The goal file holds the scripted stroke's milk pattern: replaying the script gives a zero loss, standing
+    still does not, and the goal file is what the loader checks."""
+    task = tasks.make("LatteArtStir", "small")
+    doc = goals.load("LatteArtStir", "small")
+    assert doc["points"].shape[1:] == (min(task.goal_points, task.body_slice("milk").stop -
+                                           task.body_slice("milk").start), 3)
+    assert list(doc["steps"]) == list(range(task.goal_every, task.horizon + 1, task.goal_every))
+    scripted = task.evaluate(task.scripted_actions(), rewards=False)["loss"]
+    still = task.evaluate(np.zeros((task.horizon, 2)), rewards=False)["loss"]
+    assert scripted < 1e-3 * still and still > 1e-5
+
+
+def test_goal_file_errors(tmp_path):
+    with pytest.raises(goals.GoalFileError, match="generate it with"):
+        goals.load("LatteArtStir", "paper", path=tmp_path / "missing.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(goals.GoalFileError, match="not a readable goal file"):
+        goals.load("LatteArtStir", "small", path=bad)
+    other = goals.save(tmp_path / "g.npz", "Mixing", "small", [5], np.zeros((1, 4, 3)), {})
+    with pytest.raises(goals.GoalFileError, match="holds the goal of Mixing"):
+        goals.load("LatteArtStir", "small", path=other)
+
+
+def _state(x, tool=None):
+    return losses.StepState(1, 0.0, x, np.zeros_like(x), np.zeros((1, 3)) if tool is None else tool,
+                            np.eye(3)[None])
+
+
+def _fd_check(loss, x, key="x", tool=None, eps=1e-7):
+    rng = np.random.default_rng(3)
+    value, grads = loss(_state(x, tool), 1, grad=True)
+    base = x if key == "x" else tool
+    d = rng.normal(size=base.shape)
+    plus, minus = base + eps * d, base - eps * d
+    if key == "x":
+        fp, fm = loss(_state(plus, tool), 1)[0], loss(_state(minus, tool), 1)[0]
+    else:
+        fp, fm = loss(_state(x, plus), 1)[0], loss(_state(x, minus), 1)[0]
+    fd = (fp - fm) / (2 * eps)
+    assert np.sum(grads[key] * d) == pytest.approx(fd, rel=1e-5, abs=1e-12)
+
+
+def test_task_loss_gradients_match_finite_differences():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 0.05, (60, 3))
+    goal = rng.uniform(0.0, 0.05, (25, 3))
+    _fd_check(ChamferToGoal({1: goal}, slice(10, 50)), x)
+    _fd_check(NegativeSpread(slice(0, 40), steps="all"), x)
+    _fd_check(ToolAttraction(slice(5, 30)), x, key="tool_position", tool=np.array([[0.02, 0.01, 0.03]]))
+    # the Chamfer distance of a set to itself is zero, and it grows with a shift
+    assert ChamferToGoal({1: x[10:50]}, slice(10, 50))(_state(x), 1)[0] == pytest.approx(0.0, abs=1e-20)
+    shifted = x.copy()
+    shifted[10:50] += [0.001, 0.0, 0.0]
+    assert ChamferToGoal({1: x[10:50]}, slice(10, 50))(_state(shifted), 1)[0] > 0.0
+
+
+@pytest.mark.parametrize("name", ["LatteArtStir", "Mixing"])
+def test_parametrisations_are_linear_maps_with_their_transpose(name):
+    task = tasks.make(name, "small")
+    rng = np.random.default_rng(1)
+    for par in (P.default(task), P.knots(task)):
+        theta = par.clip(rng.uniform(-0.2, 0.2, par.size))
+        actions = par.actions(theta)
+        assert actions.shape == (task.horizon, 2)
+        assert np.all(np.abs(actions) <= task.max_tool_speed + 1e-12)
+        g = rng.normal(size=actions.shape)
+        gp = rng.normal(size=3)
+        grad = par.gradient(g, gp)
+        # <A θ, g> = <θ, Aᵀ g> on the action part; the tool position part picks the action-plane axes
+        assert np.sum(actions * g) == pytest.approx(grad[: par.n_action_params] @ theta[: par.n_action_params])
+        np.testing.assert_allclose(grad[par.n_action_params:], gp[:2])
+        lo, hi = task.workspace()
+        pos = par.tool_position(theta)
+        assert np.all(pos >= lo - 1e-12) and np.all(pos <= hi + 1e-12)
+    if task.periodic:
+        stroke, reset = task.periodic
+        pp = P.periodic(task)
+        a = pp.actions(pp.clip(rng.uniform(-0.15, 0.15, pp.size)))
+        # each whole period returns the tool to where the stroke started
+        np.testing.assert_allclose(a[: stroke + reset].sum(axis=0), 0.0, atol=1e-12)
+
+
+def test_gymnasium_environments_pass_the_checker():
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+
+    import fluidlab_core.envs  # noqa: F401  (registers the ids)
+
+    for name in TASKS:
+        env = gym.make(f"FluidLab/{name}-v0", render_mode="rgb_array")
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value.*")
+            check_env(env.unwrapped, skip_render_check=False)
+        obs, info = env.reset(seed=0)
+        assert obs.shape == env.observation_space.shape
+        total, steps, done = 0.0, 0, False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+            total += reward
+            steps += 1
+            done = terminated or truncated
+        assert steps == env.unwrapped.task.horizon and np.isfinite(total)
+        frame = env.render()
+        assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8 and frame.std() > 1
+        env.close()
+
+
+def test_trajectory_of_a_task_round_trips_and_refuses_other_tasks(tmp_path):
+    task = tasks.make("Mixing", "small")
+    actions = np.full((task.horizon, 2), 0.05)
+    traj = task.trajectory(actions, tool_position=(0.49, 0.01, 0.02), method="test", seed=3)
+    assert traj.frame_id == "fr3_link0" and traj.metadata["flange_to_tool"] == list(task.flange_to_tool)
+    path = traj.save(tmp_path / "t.json")
+    a, pos = task.actions_from_trajectory(type(traj).load(path))
+    np.testing.assert_allclose(a, actions)
+    np.testing.assert_allclose(pos, (0.49, 0.01, 0.02))
+    with pytest.raises(ValueError, match="is for task 'Mixing', not 'LatteArtStir'"):
+        tasks.make("LatteArtStir").actions_from_trajectory(traj)
