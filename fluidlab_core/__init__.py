@@ -7,10 +7,10 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from fluidlab_core import materials
+from fluidlab_core import materials, optim, tasks
 from fluidlab_core.runtime import init
 from fluidlab_core.scene import ParticleHandle, Scene, UnstableTimeStepError
 from fluidlab_core.shapes import Box, Cup, Cylinder, Mesh, Sphere, Tank
 
-__all__ = ["init", "materials", "Scene", "ParticleHandle", "UnstableTimeStepError", "Box", "Cylinder", "Sphere",
+__all__ = ["init", "materials", "tasks", "optim", "Scene", "ParticleHandle", "UnstableTimeStepError", "Box", "Cylinder", "Sphere",
            "Mesh", "Cup", "Tank", "__version__"]

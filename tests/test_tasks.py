@@ -183,3 +183,24 @@ def test_trajectory_of_a_task_round_trips_and_refuses_other_tasks(tmp_path):
     np.testing.assert_allclose(pos, (0.49, 0.01, 0.02))
     with pytest.raises(ValueError, match="is for task 'Mixing', not 'LatteArtStir'"):
         tasks.make("LatteArtStir").actions_from_trajectory(traj)
+
+
+def test_shipped_trajectories_reproduce_their_recorded_loss():
+    """One optimised trajectory per task ships in trajectories/<task>/ with its video; replaying it on the
+    reference physics gives the final loss its optimiser recorded."""
+    from pathlib import Path
+
+    from fluidlab_core.trajectory import Trajectory
+
+    root = Path(__file__).resolve().parents[1] / "trajectories"
+    for name in TASKS:
+        files = sorted((root / name).glob("*_small.json"))
+        assert len(files) == 1, f"expected one shipped trajectory for {name}, found {files}"
+        assert files[0].with_suffix(".mp4").stat().st_size > 10_000
+        traj = Trajectory.load(files[0])
+        task = tasks.make(name, traj.metadata["size"])
+        actions, position = task.actions_from_trajectory(traj)
+        loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
+        zero = task.evaluate(np.zeros_like(actions), rewards=False)["loss"]
+        assert loss == pytest.approx(traj.metadata["final_loss"], rel=1e-3)
+        assert loss < zero  # the optimised trajectory beats leaving the tool still

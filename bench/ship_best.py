@@ -1,0 +1,49 @@
+"""Copy the best run of each task from a bench_tasks output folder into trajectories/<task>/, with its report
+and a video of its episode (rendered on the reference physics).
+
+    python bench/ship_best.py out/bench_tasks [--dest trajectories]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("bench_out")
+    ap.add_argument("--dest", default="trajectories")
+    args = ap.parse_args()
+    import fluidlab_core
+    from fluidlab_core.episode import render_episode, write_mp4
+    from fluidlab_core.trajectory import Trajectory
+
+    runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
+    best = {}
+    for r in runs:
+        if "final_loss" in r and (r["task"] not in best or r["final_loss"] < best[r["task"]]["final_loss"]):
+            best[r["task"]] = r
+    fluidlab_core.init(arch="cpu", precision="f32")
+    for task, r in sorted(best.items()):
+        src = Path(r["trajectory"])
+        dest = Path(args.dest) / task
+        dest.mkdir(parents=True, exist_ok=True)
+        shutil.copy(src, dest / src.name)
+        shutil.copy(src.with_name(src.stem + ".report.json"), dest / (src.stem + ".report.json"))
+        traj = Trajectory.load(dest / src.name)
+        with tempfile.TemporaryDirectory() as tmp:
+            out = render_episode(traj, tmp, every=1, mp4=False, size=(480, 360))
+            from PIL import Image
+            import numpy as np
+
+            images = [np.asarray(Image.open(f).convert("RGB")) for f in out["frames"]]
+            write_mp4(images, dest / (src.stem + ".mp4"), fps=25)
+        print(f"{task}: {r['method']} seed {r['seed']} final loss {r['final_loss']:.4e} "
+              f"(video loss {out['loss']:.4e}) -> {dest / src.name}")
+
+
+if __name__ == "__main__":
+    main()
