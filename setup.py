@@ -24,7 +24,8 @@ INSTALL_REQUIRES = [
 
 # example-robot-data (414 MB of meshes) is only the Panda URDF that tests/test_pipeline.py cross-checks
 # robot_models/ against; it is a test extra, not a runtime dependency.
-TEST_REQUIRES = ["pytest==9.2.0", "example-robot-data==6.0.0"]
+# pytest-xdist runs the test files in two processes, overlapping Taichi compilation (README).
+TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0"]
 
 setup(
     name=PACKAGE,
