@@ -18,7 +18,7 @@ def main():
     ap.add_argument("--dest", default="trajectories")
     args = ap.parse_args()
     import fluidlab_core
-    from fluidlab_core.episode import render_episode, write_mp4
+    from fluidlab_core.episode import render_episode
     from fluidlab_core.trajectory import Trajectory
 
     runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
@@ -35,12 +35,8 @@ def main():
         shutil.copy(src.with_name(src.stem + ".report.json"), dest / (src.stem + ".report.json"))
         traj = Trajectory.load(dest / src.name)
         with tempfile.TemporaryDirectory() as tmp:
-            out = render_episode(traj, tmp, every=1, mp4=False, size=(480, 360))
-            from PIL import Image
-            import numpy as np
-
-            images = [np.asarray(Image.open(f).convert("RGB")) for f in out["frames"]]
-            write_mp4(images, dest / (src.stem + ".mp4"), fps=25)
+            out = render_episode(traj, tmp, every=1, size=(480, 360), fps=25)
+            shutil.move(out["mp4"], dest / (src.stem + ".mp4"))
         print(f"{task}: {r['method']} seed {r['seed']} final loss {r['final_loss']:.4e} "
               f"(video loss {out['loss']:.4e}) -> {dest / src.name}")
 

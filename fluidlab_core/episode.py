@@ -20,9 +20,10 @@ def task_for(traj, size: str | None = None):
 
 
 def render_episode(traj, out_dir, every: int = 1, mp4: bool = True, size=(640, 480), progress=None,
-                   task=None) -> dict:
+                   task=None, fps: int | None = None) -> dict:
     """Step the task's reference physics with the trajectory, writing frame_XXXX.png every `every` steps
-    (and the start) and episode.mp4 into `out_dir`. Returns {"frames": [...], "mp4": path or None, "loss"}."""
+    (and the start) and episode.mp4 into `out_dir` (`fps` frames per second; default a quarter of real
+    time). Returns {"frames": [...], "mp4": path or None, "loss"}."""
     task = task or task_for(traj)
     actions, position = task.actions_from_trajectory(traj)
     out = Path(out_dir)
@@ -48,7 +49,8 @@ def render_episode(traj, out_dir, every: int = 1, mp4: bool = True, size=(640, 4
             snap(k)
         if progress:
             progress(k, len(actions))
-    video = write_mp4(images, out / "episode.mp4", fps=max(1, round(1.0 / (task.dt * every) / 4))) if mp4 else None
+    fps = fps or max(1, round(1.0 / (task.dt * every) / 4))
+    video = write_mp4(images, out / "episode.mp4", fps=fps) if mp4 else None
     return {"frames": frames, "mp4": video, "loss": total}
 
 

@@ -31,7 +31,13 @@ class ChamferToGoal(Loss):
     def __init__(self, goal: dict, particles, weight: float = 1.0):
         super().__init__(steps=sorted(goal), weight=weight)
         self.goal = {int(k): np.asarray(v, dtype=np.float64) for k, v in goal.items()}
-        self.trees = {k: cKDTree(v) for k, v in self.goal.items()}
+        # one tree per distinct goal array (a per-step goal repeats each snapshot over several steps)
+        built: dict[int, cKDTree] = {}
+        self.trees = {}
+        for k, v in self.goal.items():
+            if id(v) not in built:
+                built[id(v)] = cKDTree(v)
+            self.trees[k] = built[id(v)]
         self.particles = particles
 
     def evaluate(self, state, grad):
