@@ -31,14 +31,16 @@ def main():
         src = Path(r["trajectory"])
         dest = Path(args.dest) / task
         dest.mkdir(parents=True, exist_ok=True)
-        shutil.copy(src, dest / src.name)
-        shutil.copy(src.with_name(src.stem + ".report.json"), dest / (src.stem + ".report.json"))
-        traj = Trajectory.load(dest / src.name)
+        # shipped names carry the task: sim_node's trajectory names (file stems) are unique across the folder
+        stem = src.stem if src.stem.startswith(task + "_") else f"{task}_{src.stem}"
+        shutil.copy(src, dest / f"{stem}.json")
+        shutil.copy(src.with_name(src.stem + ".report.json"), dest / f"{stem}.report.json")
+        traj = Trajectory.load(dest / f"{stem}.json")
         with tempfile.TemporaryDirectory() as tmp:
             out = render_episode(traj, tmp, every=1, size=(480, 360), fps=25)
-            shutil.move(out["mp4"], dest / (src.stem + ".mp4"))
+            shutil.move(out["mp4"], dest / f"{stem}.mp4")
         print(f"{task}: {r['method']} seed {r['seed']} final loss {r['final_loss']:.4e} "
-              f"(video loss {out['loss']:.4e}) -> {dest / src.name}")
+              f"(video loss {out['loss']:.4e}) -> {dest / stem}.json")
 
 
 if __name__ == "__main__":

@@ -65,8 +65,8 @@ def _cmd_optimise(args):
     from fluidlab_core import optim, tasks
     from fluidlab_core.trajectory import check_name, path_for
 
-    name = check_name(args.name or f"{args.method}_seed{args.seed}_{args.size}")
     task = tasks.make(args.task, size=args.size)
+    name = check_name(args.name or f"{task.name}_{args.method}_seed{args.seed}_{args.size}")
     budget = args.budget if args.budget is not None else 12 * task.horizon
     fluidlab_core.init(arch=args.arch, precision=args.precision)
     print(f"optimising {task.name} ({args.size}) with {args.method}, budget {budget} simulated steps, seed "
@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     p.add_argument("--budget", type=int, default=None, help="simulated steps (default 12 rollouts of the horizon)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", default="small", choices=["small", "paper"])
-    p.add_argument("--name", default=None, help="trajectory name (default METHOD_seedS_SIZE)")
+    p.add_argument("--name", default=None, help="trajectory name (default TASK_METHOD_seedS_SIZE; unique across the folder, as sim_node names trajectories by it)")
     p.add_argument("--root", default="trajectories", help="folder of trajectories (default ./trajectories)")
     _add_backend(p)
     p.set_defaults(func=_cmd_optimise)

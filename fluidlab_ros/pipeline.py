@@ -93,6 +93,18 @@ class Plan:
         return len(self.velocities) / self.control_rate
 
 
+def command_budgets(lim, control_rate: float, margin: float = 0.8, tolerate_lost_command: bool = True):
+    """(acceleration, jerk) per joint that a smooth command profile at `control_rate` may use so that the
+    arm, holding each command for 1000 / rate ticks of 1 ms, sees at most margin x its limits (and, with
+    `tolerate_lost_command`, also when one command is lost and the next doubles the step). Used by the
+    planner and by the stop ramp (stopping.py)."""
+    n_hold = ticks_per_command(control_rate, lim.check_period)
+    a_eff = lim.acceleration.copy() if n_hold == 1 else np.minimum(lim.acceleration, lim.jerk * lim.check_period) / n_hold
+    if tolerate_lost_command:
+        a_eff = np.minimum(lim.acceleration, lim.jerk * lim.check_period) / (2 * n_hold)
+    return PLAN_FRACTION * margin * a_eff, PLAN_FRACTION * margin * lim.jerk
+
+
 def _task_poses(traj: Trajectory, mounting: Mounting, robot: Robot) -> np.ndarray:
     if traj.frame_id in BASE_FRAMES or traj.frame_id == robot.base_frame:
         poses = traj.poses()
@@ -192,12 +204,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         raise InvalidInputError(f"q_start {np.round(q_start, 4).tolist()} is outside the joint limits less "
                                 f"{position_margin} rad")
 
-    # budgets: what the arm sees under the hold model must stay within margin x limit
-    a_eff = lim.acceleration.copy() if n_hold == 1 else np.minimum(lim.acceleration, lim.jerk * lim.check_period) / n_hold
-    if tolerate_lost_command:
-        a_eff = np.minimum(lim.acceleration, lim.jerk * lim.check_period) / (2 * n_hold)
-    a_plan = PLAN_FRACTION * margin * a_eff
-    j_plan = PLAN_FRACTION * margin * lim.jerk
+    a_plan, j_plan = command_budgets(lim, control_rate, margin, tolerate_lost_command)
 
     def v_plan(q):
         lo, hi = lim.velocity_bounds(q)

@@ -1,0 +1,96 @@
+"""The node's trajectory folder: names, listing, lookup and saving.
+
+Layout (the same as the `fluidlab` CLI writes and trajectories/ ships): <folder>/<Task>/<name>.json, with an
+optional <name>.report.json and <name>.mp4 beside it. A trajectory's *name* is its file name without
+".json"; names are unique across the whole folder (a second file with the same name is an error that names
+both paths), contain no path separators (fluidlab_core.trajectory.check_name), and never point outside the
+folder.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from fluidlab_core.trajectory import Trajectory, TrajectoryError, check_name
+
+
+class StoreError(ValueError):
+    """A request the trajectory folder cannot serve, with the reason."""
+
+
+@dataclass
+class Info:
+    name: str
+    task: str
+    method: str
+    seed: int
+    steps: int
+    dt: float
+    final_loss: float
+    path: Path
+
+    @property
+    def duration(self) -> float:
+        return self.steps * self.dt
+
+
+class TrajectoryStore:
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder).expanduser().resolve()
+
+    def _files(self) -> list[Path]:
+        if not self.folder.is_dir():
+            return []
+        return sorted(p for p in self.folder.glob("*/*.json") if not p.name.endswith(".report.json")
+                      and not p.name.startswith("."))
+
+    def find(self, name: str) -> Path:
+        try:
+            check_name(name)
+        except TrajectoryError as err:
+            raise StoreError(str(err)) from None
+        hits = [p for p in self._files() if p.stem == name]
+        if not hits:
+            raise StoreError(f"no trajectory named {name!r} in {self.folder} (see ~/list_trajectories)")
+        if len(hits) > 1:
+            raise StoreError(f"trajectory name {name!r} is ambiguous: {', '.join(str(h) for h in hits)}")
+        return hits[0]
+
+    def load(self, name: str) -> Trajectory:
+        path = self.find(name)
+        try:
+            return Trajectory.load(path)
+        except (TrajectoryError, OSError) as err:
+            raise StoreError(f"trajectory {name!r} cannot be used: {err}") from None
+
+    def info(self, path: Path, traj: Trajectory | None = None) -> Info:
+        traj = traj or Trajectory.load(path)
+        loss = traj.metadata.get("final_loss") if isinstance(traj.metadata, dict) else None
+        return Info(name=path.stem, task=traj.task, method=traj.method or "", seed=int(traj.seed or 0),
+                    steps=traj.n_steps, dt=float(traj.dt), final_loss=float(loss) if loss is not None else math.nan,
+                    path=path)
+
+    def list(self, task: str = "") -> tuple[list[Info], list[str]]:
+        """Infos of the loadable trajectories (optionally of one task), and one line per file that is not."""
+        infos, problems = [], []
+        for path in self._files():
+            if task and path.parent.name != task:
+                continue
+            try:
+                infos.append(self.info(path))
+            except (TrajectoryError, OSError, ValueError) as err:
+                problems.append(f"{path}: {err}")
+        return infos, problems
+
+    def new_path(self, task: str, name: str) -> Path:
+        """Where a new trajectory `name` of `task` goes; refuses names already used anywhere in the folder."""
+        try:
+            check_name(name)
+            check_name(task, "task name")
+        except TrajectoryError as err:
+            raise StoreError(str(err)) from None
+        taken = [p for p in self._files() if p.stem == name]
+        if taken:
+            raise StoreError(f"a trajectory named {name!r} exists already ({taken[0]}); choose another name")
+        return self.folder / task / f"{name}.json"
