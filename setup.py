@@ -44,6 +44,8 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
     ],
-    entry_points={"console_scripts": ["fluidlab = fluidlab_core.cli:main"]},
+    entry_points={"console_scripts": ["fluidlab = fluidlab_core.cli:main",
+                                    "sim_node = fluidlab_ros.sim_node:main",
+                                    "command_monitor = fluidlab_ros.monitor:main"]},
     zip_safe=False,
 )

@@ -1,0 +1,98 @@
+"""command_monitor: a separate process that watches a joint velocity command stream and judges it.
+
+    command_monitor --topic /sim_node/commands --out stream.npz [--robot fr3]
+
+Records every std_msgs/Float64MultiArray on the topic with its arrival time (time.monotonic, s) until SIGINT
+or SIGTERM (and the topic has then been quiet for 0.5 s), then writes `out` (npz: times (K,), commands (K, dof)) atomically and prints one JSON line:
+count, rate (Hz, from the arrival span), inter-arrival p50/p99/max (ms), and whether the commands, held for
+1 ms ticks at the nominal rate from rest, stay within the arm's official limits (velocity, acceleration,
+jerk; the FR3's position-based velocity limits need a start posture and are left to the node's verifier).
+Tests and bench/bench_stream.py use it, so what they report is what another process on the graph saw.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+
+def stream_stats(times: np.ndarray, commands: np.ndarray, rate: float, limits) -> dict:
+    out = {"count": int(len(times))}
+    if len(times) >= 2:
+        gaps = np.diff(times) * 1e3
+        out.update(rate=(len(times) - 1) / (times[-1] - times[0]), gap_p50_ms=float(np.percentile(gaps, 50)),
+                   gap_p99_ms=float(np.percentile(gaps, 99)), gap_max_ms=float(gaps.max()))
+    if len(commands):
+        n = int(round(1.0 / (rate * limits.check_period)))
+        v = np.repeat(commands, n, axis=0)
+        v_ext = np.vstack([np.zeros((2, v.shape[1])), v, np.zeros((2, v.shape[1]))])
+        acc = np.diff(v_ext, axis=0) / limits.check_period
+        jerk = np.diff(acc, axis=0) / limits.check_period
+        peaks = {"velocity": np.abs(v).max(axis=0) / limits.velocity,
+                 "acceleration": np.abs(acc).max(axis=0) / limits.acceleration,
+                 "jerk": np.abs(jerk).max(axis=0) / limits.jerk}
+        out["peak_fraction"] = {k: float(p.max()) for k, p in peaks.items()}
+        out["within_limits"] = bool(all(p.max() <= 1.0 for p in peaks.values()))
+        out["ends_at_rest"] = bool(not np.any(commands[-1]))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="command_monitor", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--topic", default="/sim_node/commands")
+    ap.add_argument("--out", required=True, help="npz file to write on exit")
+    ap.add_argument("--rate", type=float, default=500.0, help="nominal stream rate (Hz) for the hold model")
+    ap.add_argument("--robot", default="fr3")
+    ap.add_argument("--ready-file", default=None, help="touch this file once subscribed (for scripts)")
+    args = ap.parse_args(argv)
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    from std_msgs.msg import Float64MultiArray
+
+    from fluidlab_ros.limits import JointLimits
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = rclpy.create_node("command_monitor")
+    times, data = [], []
+
+    def on_command(msg):
+        times.append(time.monotonic())
+        data.append(list(msg.data))
+
+    node.create_subscription(Float64MultiArray, args.topic, on_command, 1000)
+    spin = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
+    spin.start()
+    if args.ready_file:
+        open(args.ready_file, "w").close()
+    stop.wait()
+    # drain: a loaded machine may leave the subscriber behind the stream; stop once it has been quiet 0.5 s
+    while True:
+        n = len(times)
+        time.sleep(0.5)
+        if len(times) == n:
+            break
+    rclpy.shutdown()
+    spin.join(2.0)
+    limits = JointLimits.load(args.robot)
+    t = np.array(times)
+    c = np.array(data, dtype=float) if data else np.zeros((0, limits.dof))
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(args.out)) or ".", suffix=".npz")
+    os.close(fd)
+    np.savez(tmp, times=t, commands=c)
+    os.replace(tmp, args.out)
+    print(json.dumps(stream_stats(t, c, args.rate, limits)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,739 @@
+"""sim_node: the simulated twin, and the bridge from optimised trajectories to a Franka arm.
+
+    ros2 run fluidlab_ros sim_node --ros-args -p mode:=twin          (after a colcon build on ROS 2 Jazzy)
+    sim_node --ros-args -p mode:=robot -p command_topic:=/my_velocity_controller/commands   (pip install)
+
+Interfaces (all under the node's name, `~/` = /sim_node/ by default; types in fluidlab_msgs and
+common_interfaces):
+  actions   ~/optimise  fluidlab_msgs/action/Optimise   optimiser in a worker process; feedback each iteration
+            ~/execute   fluidlab_msgs/action/Execute    plan (fluidlab_ros.pipeline), then stream at control_rate
+  services  ~/list_trajectories  fluidlab_msgs/srv/ListTrajectories
+            ~/get_trajectory     fluidlab_msgs/srv/GetTrajectory
+            ~/stop               std_srvs/srv/Trigger     ramp the arm to rest and abort the execute goal
+            ~/arm                std_srvs/srv/SetBool     robot mode: allow (true) / forbid (false) commands
+  topics    ~/commands           std_msgs/Float64MultiArray  every command sent (rad/s, controller joint order)
+            <command_topic>      the same, to the JointGroupVelocityController; robot mode only, only when armed
+            ~/twin/joint_states  sensor_msgs/JointState      the twin arm (rad, rad/s)
+            ~/tool_pose          geometry_msgs/PoseStamped   the tool in <robot>_link0 (twin or measured arm)
+            ~/tracking_error     std_msgs/Float64            m, |planned - measured| tool position while streaming
+            ~/particles          sensor_msgs/PointCloud2     the twin's fluid (x, y, z float32 in <robot>_link0)
+            /diagnostics         diagnostic_msgs/DiagnosticArray  mode, armed, reflex, late ticks, joint-state age
+  subscribed <joint_state_topic> sensor_msgs/JointState      robot mode: the measured arm
+
+Safety (docs/ros.md): nothing is sent unless the whole plan passed the verifier; bad input aborts the goal
+with a message before anything is sent; cancel, ~/stop, a joint-state gap longer than joint_state_timeout
+(robot mode), a control tick later than late_tick_limit, disarming or shutting the node down all end the
+stream with a jerk-limited ramp to rest (fluidlab_ros.stopping). The twin applies libfranka's checks to what
+it receives and reports a reflex the way the arm would.
+
+Bad input on an action is answered by accepting the goal and aborting it at once with the reason in
+result.message (a rejected goal carries no reason to the client); a goal arriving while another of the same
+kind runs is rejected.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import multiprocessing as mp
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import rclpy
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data, ReliabilityPolicy, HistoryPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState, PointCloud2, PointField
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import SetBool, Trigger
+
+from fluidlab_msgs.action import Execute, Optimise
+from fluidlab_msgs.msg import TrajectoryInfo
+from fluidlab_msgs.srv import GetTrajectory, ListTrajectories
+
+from fluidlab_ros.errors import PlanningError
+from fluidlab_ros.frames import se3_to_pose
+from fluidlab_ros.mounting import load_mounting
+from fluidlab_ros.robot import READY_Q, Robot
+from fluidlab_ros.stopping import stop_ramp
+from fluidlab_ros.store import StoreError, TrajectoryStore
+from fluidlab_ros.twin import TwinArm
+from fluidlab_ros import workers
+
+MODES = ("twin", "robot")
+TARGETS = ("twin", "robot")
+SIZES = ("small", "paper")
+
+
+@dataclass
+class Stream:
+    """One command stream in flight (the execute goal's), shared by the stream thread and the goal."""
+
+    plan: object
+    to_robot: bool
+    index: int = 0  # commands sent
+    stop_reason: str = ""  # set to ask for a ramp to rest
+    outcome: str = ""  # why it ended: "done", or the stop reason
+    reflex: str = ""
+    phase: str = "approach"
+    late_ticks: int = 0  # ticks later than half a period
+    max_late: float = 0.0  # s
+    sent_times: list = field(default_factory=list)
+    done: threading.Event = field(default_factory=threading.Event)
+
+
+class SimNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("sim_node", **kwargs)
+        p = self.declare_parameter
+        self.robot_model = p("robot_model", "fr3").value
+        self.mode = p("mode", "twin").value
+        self.control_rate = float(p("control_rate", 500.0).value)
+        self.command_topic = p("command_topic", "/fluidlab_velocity_controller/commands").value
+        controller_joints = list(p("controller_joint_names", [""]).value)
+        self.joint_state_topic = p("joint_state_topic", "/franka/joint_states").value
+        js_qos = p("joint_state_qos", "best_effort").value
+        self.joint_state_timeout = float(p("joint_state_timeout", 0.1).value)
+        self.late_tick_limit = float(p("late_tick_limit", 0.02).value)
+        folder = p("trajectory_folder", "trajectories").value
+        self.margin = float(p("margin", 0.8).value)
+        # optimised trajectories change the tool velocity at every task step (corners every few ms) that a
+        # jerk-limited arm rounds off; the shipped ones leave their path by 1.5-3.7 mm (docs/ros.md)
+        self.max_path_error = float(p("max_path_error", 0.005).value)
+        self.max_orientation_error = float(p("max_orientation_error", 0.05).value)
+        self.fluid_twin = bool(p("fluid_twin", True).value)
+        self.arch = p("arch", "cpu").value
+        self.precision = p("precision", "f32").value
+        state_rate = float(p("state_publish_rate", 50.0).value)
+        q_init = list(p("twin_initial_positions", READY_Q.tolist()).value)
+        self.cancel_timeout = float(p("cancel_timeout", 0.5).value)
+        self.realtime_priority = int(p("realtime_priority", 10).value)
+
+        if self.mode not in MODES:
+            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
+        if js_qos not in ("best_effort", "reliable"):
+            raise ValueError(f"parameter joint_state_qos must be 'best_effort' or 'reliable', got {js_qos!r}")
+        self.robot = Robot(self.robot_model)  # raises with the known models on a bad name
+        self.limits = self.robot.limits
+        from fluidlab_ros.verify import ticks_per_command
+        ticks_per_command(self.control_rate, self.limits.check_period)  # refuses rates that do not divide 1 kHz
+        names = self.robot.joint_names
+        if controller_joints == [""] or not controller_joints:
+            controller_joints = list(names)
+        if sorted(controller_joints) != sorted(names):
+            raise ValueError(f"controller_joint_names {controller_joints} must be a permutation of {list(names)}")
+        self.controller_order = np.array([names.index(j) for j in controller_joints])
+        self.controller_joints = controller_joints
+        self.store = TrajectoryStore(folder)
+        self.twin = TwinArm(self.limits, np.asarray(q_init, dtype=float))
+        self.twin.reset(q_init, time.monotonic())
+
+        self._lock = threading.Lock()
+        self.armed = False
+        self.stream: Stream | None = None
+        self.optimising = False
+        self.measured_q: np.ndarray | None = None
+        self.measured_v: np.ndarray | None = None
+        self.measured_time = -math.inf
+        self.last_reflex = ""
+        self._fluid = None  # (task, size, process, inbox, outbox)
+        self._fluid_lock = threading.Lock()
+        self._mp = mp.get_context("spawn")
+
+        cb = ReentrantCallbackGroup()
+        timers = MutuallyExclusiveCallbackGroup()
+        # a deep history: a reliable subscriber that stalls (a loaded machine) still gets every command
+        self.pub_commands = self.create_publisher(Float64MultiArray, "~/commands", 1000)
+        self.pub_controller = (self.create_publisher(Float64MultiArray, self.command_topic, 10)
+                               if self.mode == "robot" else None)
+        self.pub_twin_js = self.create_publisher(JointState, "~/twin/joint_states", 10)
+        self.pub_tool = self.create_publisher(PoseStamped, "~/tool_pose", 10)
+        self.pub_tracking = self.create_publisher(Float64, "~/tracking_error", 10)
+        self.pub_particles = self.create_publisher(PointCloud2, "~/particles", 2)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        if self.mode == "robot":
+            qos = qos_profile_sensor_data if js_qos == "best_effort" else QoSProfile(
+                depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+            self.create_subscription(JointState, self.joint_state_topic, self._on_joint_state, qos,
+                                     callback_group=cb)
+        ActionServer(self, Optimise, "~/optimise", execute_callback=self._optimise,
+                     goal_callback=self._optimise_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
+                     callback_group=cb)
+        ActionServer(self, Execute, "~/execute", execute_callback=self._execute, goal_callback=self._execute_goal,
+                     cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=cb)
+        self.create_service(ListTrajectories, "~/list_trajectories", self._list, callback_group=cb)
+        self.create_service(GetTrajectory, "~/get_trajectory", self._get, callback_group=cb)
+        self.create_service(Trigger, "~/stop", self._stop, callback_group=cb)
+        self.create_service(SetBool, "~/arm", self._arm, callback_group=cb)
+        self.create_timer(1.0 / state_rate, self._publish_state, callback_group=timers)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=timers)
+        self._particle_thread = threading.Thread(target=self._particle_loop, daemon=True)
+        self._particle_thread.start()
+        self.get_logger().info(
+            f"sim_node up: mode {self.mode}, robot {self.robot_model}, {self.control_rate:g} Hz, trajectories in "
+            f"{self.store.folder}" + (f", commands to {self.command_topic} when armed, joint states from "
+                                      f"{self.joint_state_topic}" if self.mode == "robot" else ""))
+
+    # --- measured arm ----------------------------------------------------------------------------------
+    def _on_joint_state(self, msg: JointState):
+        names = self.robot.joint_names
+        try:
+            idx = [list(msg.name).index(j) for j in names]
+        except ValueError:
+            return  # another arm's or a gripper's joint states
+        q = np.array([msg.position[i] for i in idx])
+        v = np.array([msg.velocity[i] for i in idx]) if len(msg.velocity) == len(msg.name) else None
+        with self._lock:
+            self.measured_q, self.measured_v, self.measured_time = q, v, time.monotonic()
+
+    def _joint_state_age(self) -> float:
+        return time.monotonic() - self.measured_time
+
+    def _arm_positions(self) -> np.ndarray:
+        """The arm the node acts on: measured in robot mode, the twin otherwise."""
+        if self.mode == "robot":
+            with self._lock:
+                return None if self.measured_q is None else self.measured_q.copy()
+        return self.twin.state()[0]
+
+    # --- services ----------------------------------------------------------------------------------------
+    def _info_msg(self, info) -> TrajectoryInfo:
+        return TrajectoryInfo(name=info.name, task=info.task, method=info.method, seed=info.seed, steps=info.steps,
+                              dt=info.dt, duration=info.duration, final_loss=info.final_loss)
+
+    def _list(self, request, response):
+        infos, problems = self.store.list(request.task)
+        for line in problems:
+            self.get_logger().warn(f"skipping an unusable trajectory file: {line}")
+        response.trajectories = [self._info_msg(i) for i in infos]
+        return response
+
+    def _get(self, request, response):
+        try:
+            path = self.store.find(request.name)
+            traj = self.store.load(request.name)
+            response.info = self._info_msg(self.store.info(path, traj))
+            response.document = path.read_text()
+            response.success, response.message = True, str(path)
+        except StoreError as err:
+            response.success, response.message = False, str(err)
+        return response
+
+    def _stop(self, request, response):
+        stream = self.stream
+        if stream is None:
+            response.success, response.message = True, "the arm is not being commanded; nothing to stop"
+            return response
+        stream.stop_reason = stream.stop_reason or "stopped by ~/stop"
+        response.success, response.message = True, "ramping the arm to rest"
+        return response
+
+    def _arm(self, request, response):
+        if self.mode != "robot":
+            if request.data and self.twin.reflex is not None:
+                self.twin.recover()
+                response.success, response.message = True, "twin mode: cleared the twin's reflex (error recovery)"
+            else:
+                response.success = True
+                response.message = "twin mode: commands go to the twin only; arming is for robot mode"
+            return response
+        if request.data:
+            age = self._joint_state_age()
+            if age > self.joint_state_timeout:
+                response.success = False
+                response.message = (f"cannot arm: no joint states on {self.joint_state_topic} for "
+                                    f"{age:.3g} s (timeout {self.joint_state_timeout} s)")
+                return response
+            self.armed = True
+            response.success, response.message = True, "armed: ~/execute goals with target 'robot' may command the arm"
+            self.get_logger().info("armed")
+        else:
+            self.armed = False
+            stream = self.stream
+            if stream is not None and stream.to_robot:
+                stream.stop_reason = stream.stop_reason or "disarmed"
+            response.success, response.message = True, "disarmed"
+            self.get_logger().info("disarmed")
+        return response
+
+    # --- optimise ----------------------------------------------------------------------------------------
+    def _optimise_goal(self, goal):
+        if self.optimising:
+            self.get_logger().warn("rejected an optimise goal: another optimisation is running")
+            return GoalResponse.REJECT
+        self.optimising = True
+        return GoalResponse.ACCEPT
+
+    def _check_optimise(self, g) -> dict:
+        from fluidlab_core import tasks
+        from fluidlab_core.optim import METHODS
+
+        if g.task not in tasks.names():
+            raise ValueError(f"unknown task {g.task!r}; tasks: {', '.join(tasks.names())}")
+        size = g.size or "small"
+        if size not in SIZES:
+            raise ValueError(f"unknown size {g.size!r}; sizes: {', '.join(SIZES)}")
+        if g.method not in METHODS:
+            raise ValueError(f"unknown method {g.method!r}; methods: {', '.join(METHODS)}")
+        task = tasks.make(g.task, size=size)
+        if g.budget < task.horizon:
+            raise ValueError(f"budget {g.budget} simulated steps is less than one rollout of {g.task} ({size}): "
+                             f"{task.horizon} steps")
+        if g.seed < 0:
+            raise ValueError(f"seed must be non-negative, got {g.seed}")
+        name = g.name or f"{g.task}_{g.method}_seed{g.seed}_{size}_{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"
+        path = self.store.new_path(g.task, name)
+        return {"task": g.task, "size": size, "method": g.method, "budget": int(g.budget), "seed": int(g.seed),
+                "name": name, "path": str(path)}
+
+    def _optimise(self, goal_handle):
+        result = Optimise.Result()
+        try:
+            try:
+                request = self._check_optimise(goal_handle.request)
+            except (ValueError, StoreError) as err:
+                result.message = str(err)
+                self.get_logger().warn(f"optimise goal refused: {err}")
+                goal_handle.abort()
+                return result
+            out, stop = self._mp.Queue(), self._mp.Event()
+            proc = self._mp.Process(target=workers.optimise_worker, name="fluidlab-optimise",
+                                    args=(request, out, stop, str(self.store.folder), self.arch, self.precision),
+                                    daemon=True)
+            proc.start()
+            self.get_logger().info(f"optimising {request['task']} ({request['size']}) with {request['method']}, "
+                                   f"budget {request['budget']}, seed {request['seed']} in process {proc.pid}")
+            t0 = time.monotonic()
+            cancel_at = None
+            while True:
+                if goal_handle.is_cancel_requested and cancel_at is None:
+                    stop.set()
+                    cancel_at = time.monotonic()
+                if cancel_at is not None and (not proc.is_alive() or time.monotonic() - cancel_at > self.cancel_timeout):
+                    if proc.is_alive():
+                        proc.terminate()  # a simulation step does not look at the stop event
+                    proc.join(2.0)
+                    result.message = f"cancelled after {time.monotonic() - t0:.1f} s; nothing saved"
+                    goal_handle.canceled()
+                    return result
+                try:
+                    msg = out.get(timeout=0.05)
+                except queue.Empty:
+                    if not proc.is_alive() and out.empty():
+                        result.message = f"the optimiser process ended unexpectedly (exit code {proc.exitcode})"
+                        goal_handle.abort()
+                        return result
+                    continue
+                if msg["kind"] == "feedback":
+                    fb = Optimise.Feedback(iteration=msg["iteration"], loss=msg["loss"],
+                                           best_loss=msg["best_loss"], elapsed=time.monotonic() - t0)
+                    goal_handle.publish_feedback(fb)
+                elif msg["kind"] == "result":
+                    proc.join(5.0)
+                    result.trajectory_name, result.final_loss = msg["name"], msg["final_loss"]
+                    result.message = (f"saved {msg['path']} after {msg['iterations']} iterations in "
+                                      f"{time.monotonic() - t0:.1f} s")
+                    self.get_logger().info(result.message)
+                    goal_handle.succeed()
+                    return result
+                elif msg["kind"] == "error":
+                    proc.join(5.0)
+                    result.message = f"optimisation failed: {msg['message']}"
+                    self.get_logger().error(result.message + "\n" + msg.get("traceback", ""))
+                    goal_handle.abort()
+                    return result
+                elif msg["kind"] == "cancelled":
+                    continue  # handled with the cancel request above
+        finally:
+            self.optimising = False
+
+    # --- execute -----------------------------------------------------------------------------------------
+    def _execute_goal(self, goal):
+        if self.stream is not None or getattr(self, "_planning", False):
+            self.get_logger().warn("rejected an execute goal: another one is running")
+            return GoalResponse.REJECT
+        self._planning = True
+        return GoalResponse.ACCEPT
+
+    def _prepare(self, g):
+        """Check an execute goal and plan it; raises ValueError / StoreError / PlanningError with the reason."""
+        from fluidlab_ros.pipeline import plan
+
+        target = g.target or "twin"
+        if target not in TARGETS:
+            raise ValueError(f"unknown target {g.target!r}; targets: {', '.join(TARGETS)}")
+        if target == "robot":
+            if self.mode != "robot":
+                raise ValueError("target 'robot' needs the node in robot mode (parameter mode:=robot)")
+            if not self.armed:
+                raise ValueError("target 'robot': the node is not armed; call ~/arm with data: true first")
+            age = self._joint_state_age()
+            if age > self.joint_state_timeout:
+                raise ValueError(f"target 'robot': no joint states on {self.joint_state_topic} for {age:.3g} s")
+        scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
+        if not (0 < scale <= 1):
+            raise ValueError(f"speed_scale must be in (0, 1] (0 means 1), got {g.speed_scale}")
+        traj = self.store.load(g.trajectory_name)
+        if scale != 1.0:  # the same poses, slower: every twist times s, every step dt / s
+            traj = dataclasses.replace(traj, dt=traj.dt / scale, twists=traj.twists * scale)
+        if self.twin.reflex is not None:
+            self.get_logger().warn(f"twin error recovery before a new goal ({self.twin.reflex.message()})")
+            self.twin.recover()
+        q_start = self._arm_positions()
+        if q_start is None:
+            raise ValueError("no measured joint positions yet")
+        if target == "robot":
+            self.twin.reset(q_start, time.monotonic())  # the twin mirrors the arm it shadows
+        mounting = load_mounting(traj.task) if traj.task else None
+        pl = plan(traj, self.robot_model, mounting, control_rate=self.control_rate, margin=self.margin,
+                  q_start=q_start, max_path_error=self.max_path_error,
+                  max_orientation_error=self.max_orientation_error)
+        return traj, pl, target
+
+    def _execute(self, goal_handle):
+        g = goal_handle.request
+        result = Execute.Result()
+        goal_handle.publish_feedback(Execute.Feedback(progress=0.0, tracking_error=0.0, phase="planning"))
+        try:
+            traj, pl, target = self._prepare(g)
+        except (ValueError, StoreError, PlanningError) as err:
+            self._planning = False
+            result.success, result.message = False, str(err)
+            self.get_logger().warn(f"execute goal refused, nothing sent: {err}")
+            goal_handle.abort()
+            return result
+        rep = pl.report
+        result.duration, result.time_scale = float(pl.duration), float(rep.time_scale)
+        summary = (f"{g.trajectory_name}: {pl.duration:.2f} s of commands ({len(pl.velocities)} at "
+                   f"{self.control_rate:g} Hz), time scale {rep.time_scale:.3g}, peak "
+                   + ", ".join(f"{k} {v:.0%}" for k, v in rep.peak.items() if k in
+                               ("velocity", "acceleration", "jerk")) + f" of the limits, tool-path error "
+                   f"{rep.tool_path_error * 1e3:.3g} mm")
+        if g.dry_run:
+            self._planning = False
+            result.success, result.message = True, "dry run, nothing sent: " + summary
+            goal_handle.succeed()
+            return result
+
+        stream = Stream(plan=pl, to_robot=(target == "robot"))
+        if self.fluid_twin:
+            self._fluid_reset(traj)
+        self.stream = stream
+        self._planning = False
+        thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
+        self.get_logger().info(f"executing on the {target}: {summary}")
+        thread.start()
+        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
+        plan_tool = None
+        worst = 0.0
+        while not stream.done.wait(0.1):
+            if goal_handle.is_cancel_requested:
+                stream.stop_reason = stream.stop_reason or "cancelled"
+            k = min(stream.index, len(pl.positions) - 1)
+            q = self._arm_positions()
+            err = 0.0
+            if q is not None:
+                plan_tool = fk.frame_placement(pl.positions[k]).translation
+                err = float(np.linalg.norm(fk.frame_placement(q).translation - plan_tool))
+                worst = max(worst, err) if not stream.stop_reason else worst
+            self.pub_tracking.publish(Float64(data=err))
+            goal_handle.publish_feedback(Execute.Feedback(progress=stream.index / len(pl.velocities),
+                                                          tracking_error=err, phase=stream.phase))
+        thread.join()
+        self.stream = None
+        result.max_tracking_error = worst
+        if stream.outcome == "done":
+            result.success = True
+            result.message = (f"done: {summary}; max tracking error {worst * 1e3:.3g} mm; "
+                              f"{stream.late_ticks} late ticks (max {stream.max_late * 1e3:.3g} ms)")
+            goal_handle.succeed()
+        else:
+            result.success = False
+            result.message = (f"stopped after {stream.index} of {len(pl.velocities)} commands: {stream.outcome}"
+                              + (f" ({stream.reflex})" if stream.reflex else "") + "; the arm was ramped to rest")
+            if stream.outcome == "cancelled" and goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+            else:
+                goal_handle.abort()
+        self.get_logger().info(result.message)
+        return result
+
+    # --- the command stream ------------------------------------------------------------------------------
+    def _send(self, stream: Stream, command: np.ndarray, now: float) -> str:
+        """Publish one command (and give it to the twin); returns a reason to stop, or ''."""
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
+        msg.data = command[self.controller_order].tolist()
+        self.pub_commands.publish(msg)
+        if stream.to_robot and self.pub_controller is not None:
+            self.pub_controller.publish(msg)
+        stream.sent_times.append(now)
+        reflex = self.twin.command(command, now)
+        if reflex is not None:
+            self.last_reflex = reflex.message()
+            stream.reflex = reflex.message()
+            return f"the twin arm stopped with a reflex"
+        return ""
+
+    def _stream_loop(self, stream: Stream, traj):
+        """Absolute-deadline loop (Schedule): command k goes out at t0 + k T, never closer than T / 2 to the
+        previous one; a tick later than late_tick_limit stops the stream."""
+        pl = stream.plan
+        T = 1.0 / self.control_rate
+        cmds = pl.velocities
+        n_task0 = int(round(pl.task_start_time * self.control_rate))
+        n_task1 = int(round(pl.task_end_time * self.control_rate))
+        fluid_every = max(1, int(round(traj.dt * self.control_rate)))
+        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool) if self.fluid_twin else None
+        if self.realtime_priority > 0:
+            try:  # SCHED_FIFO for this thread only (Linux: pid 0 is the calling thread)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
+            except (OSError, AttributeError) as err:
+                if not getattr(self, "_rt_warned", False):
+                    self._rt_warned = True
+                    self.get_logger().warn(f"the command stream runs without real-time priority ({err}); give the "
+                                           f"process CAP_SYS_NICE (or rtprio in limits.conf) for fewer late ticks")
+        last, prev = np.zeros(self.limits.dof), np.zeros(self.limits.dof)
+        clock = Schedule(T, time.monotonic() + 0.01)
+        reason = ""
+        try:
+            for k in range(len(cmds)):
+                now, late = clock.wait()
+                if late > self.late_tick_limit:
+                    reason = f"control tick {k} was {late * 1e3:.1f} ms late (late_tick_limit {self.late_tick_limit * 1e3:g} ms)"
+                    break
+                stream.late_ticks, stream.max_late = clock.late_ticks, clock.max_late
+                if stream.stop_reason:
+                    reason = stream.stop_reason
+                    break
+                if stream.to_robot:
+                    age = self._joint_state_age()
+                    if age > self.joint_state_timeout:
+                        reason = (f"joint states on {self.joint_state_topic} stopped for {age * 1e3:.0f} ms "
+                                  f"(joint_state_timeout {self.joint_state_timeout * 1e3:g} ms)")
+                        break
+                    if not self.armed:
+                        reason = "disarmed"
+                        break
+                stream.phase = "approach" if k < n_task0 else "task"
+                reason = self._send(stream, cmds[k], now)
+                prev, last = last, cmds[k]
+                stream.index = k + 1
+                if reason:
+                    break
+                if fk is not None and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
+                    self._fluid_pose(fk, last=(k + fluid_every >= n_task1))
+            else:
+                stream.outcome = "done"
+                return
+            stream.outcome = reason
+            stream.phase = "stopping"
+            self.get_logger().warn(f"stopping the stream: {reason}")
+            if stream.reflex:
+                return  # the arm (twin) already stopped; nothing more is accepted
+            # the ramp keeps the same never-bunch schedule (a burst of late ramp commands would reach the arm
+            # as one jump), starting one period after the last command
+            for command in stop_ramp(last, prev, self.control_rate, self.limits, self.margin):
+                now, _ = clock.wait()
+                if self._send(stream, command, now):
+                    break
+        except Exception as err:  # noqa: BLE001 - whatever happens, the stream ends and the goal learns why
+            stream.outcome = f"internal error in the command stream: {err}"
+            self.get_logger().error(stream.outcome)
+            try:
+                self._send(stream, np.zeros(self.limits.dof), time.monotonic())
+            except Exception:  # noqa: BLE001
+                pass
+        finally:
+            stream.done.set()
+
+    # --- the twin's fluid --------------------------------------------------------------------------------
+    def _fluid_reset(self, traj):
+        size = traj.metadata.get("size", "small") if isinstance(traj.metadata, dict) else "small"
+        with self._fluid_lock:
+            if self._fluid is not None and (self._fluid[0], self._fluid[1]) != (traj.task, size):
+                self._fluid_quit()
+            if self._fluid is None or not self._fluid[2].is_alive():
+                inbox, outbox = self._mp.Queue(), self._mp.Queue()
+                proc = self._mp.Process(target=workers.fluid_worker, name="fluidlab-twin-fluid", daemon=True,
+                                        args=(traj.task, size, inbox, outbox, self.arch, self.precision))
+                proc.start()
+                self._fluid = (traj.task, size, proc, inbox, outbox)
+                self.get_logger().info(f"started the twin's fluid ({traj.task}, {size}) in process {proc.pid}")
+            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist()})
+
+    def _fluid_pose(self, fk: Robot, last: bool):
+        q = self._arm_positions()
+        if q is None or self._fluid is None:
+            return
+        self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(), "last": last})
+
+    def _fluid_quit(self):
+        if self._fluid is None:
+            return
+        _, _, proc, inbox, _ = self._fluid
+        inbox.put({"kind": "quit"})
+        proc.join(2.0)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(2.0)
+        self._fluid = None
+
+    def _particle_loop(self):
+        while rclpy.ok():
+            fluid = self._fluid
+            if fluid is None:
+                time.sleep(0.2)
+                continue
+            try:
+                msg = fluid[4].get(timeout=0.2)
+            except (queue.Empty, OSError, ValueError):
+                continue
+            if msg["kind"] == "particles":
+                self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
+                                                       self.get_clock().now().to_msg()))
+            elif msg["kind"] == "error":
+                self.get_logger().error(f"the twin's fluid failed: {msg['message']}")
+
+    # --- state publishing ----------------------------------------------------------------------------------
+    def _publish_state(self):
+        now = time.monotonic()
+        self.twin.advance(now)
+        q, v = self.twin.state()
+        stamp = self.get_clock().now().to_msg()
+        js = JointState(name=list(self.robot.joint_names), position=q.tolist(), velocity=v.tolist())
+        js.header.stamp = stamp
+        self.pub_twin_js.publish(js)
+        arm_q = self._arm_positions()
+        if arm_q is not None:
+            pose = se3_to_pose(self.robot.frame_placement(arm_q))
+            ps = PoseStamped()
+            ps.header.stamp, ps.header.frame_id = stamp, self.robot.base_frame
+            ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(x) for x in pose[:3])
+            o = ps.pose.orientation
+            o.x, o.y, o.z, o.w = (float(x) for x in pose[3:])
+            self.pub_tool.publish(ps)
+
+    def _publish_diagnostics(self):
+        stream = self.stream
+        reflex = self.twin.reflex
+        level = DiagnosticStatus.ERROR if reflex else DiagnosticStatus.OK
+        if level == DiagnosticStatus.OK and self.mode == "robot" and self._joint_state_age() > self.joint_state_timeout:
+            level = DiagnosticStatus.WARN
+        values = {"mode": self.mode, "armed": str(self.armed), "streaming": str(stream is not None),
+                  "twin_reflex": reflex.message() if reflex else "", "last_reflex": self.last_reflex,
+                  "late_ticks": str(stream.late_ticks if stream else 0),
+                  "joint_state_age": f"{self._joint_state_age():.3f}" if self.mode == "robot" else "n/a"}
+        st = DiagnosticStatus(level=level, name="sim_node", hardware_id=self.robot_model,
+                              message="reflex" if reflex else "ok",
+                              values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        arr = DiagnosticArray(status=[st])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(arr)
+
+    def shutdown(self, timeout: float = 5.0):
+        """Ramp any motion to rest, end the workers."""
+        stream = self.stream
+        if stream is not None:
+            stream.stop_reason = stream.stop_reason or "node shutting down"
+            stream.done.wait(timeout)
+        with self._fluid_lock:
+            self._fluid_quit()
+
+
+class Schedule:
+    """Absolute deadlines t0 + k T on a fixed timeline, with a minimum gap between ticks.
+
+    wait() sleeps until the next deadline and returns (now, lateness against the timeline). After a stall,
+    the following ticks come every `min_gap` (T / 2 when a command spans at least two 1 ms arm ticks) until
+    the timeline is reached again. So commands are never bunched (at most two reach one 1 ms arm tick: the
+    one-lost-command case the planner budgets for), and the time each command is held averages out: the arm
+    held the stalled command too long, then holds the next ones shorter, and comes back onto the planned
+    positions instead of drifting by (stall x velocity) per stall."""
+
+    def __init__(self, period: float, t0: float, arm_tick: float = 1e-3):
+        self.period, self.t0, self.k = period, t0, 0
+        self.min_gap = period / 2 if period >= 2 * arm_tick - 1e-12 else period
+        self.last: float | None = None
+        self.late_ticks, self.max_late = 0, 0.0
+
+    def wait(self) -> tuple[float, float]:
+        on_time = self.t0 + self.k * self.period
+        deadline = on_time if self.last is None else max(on_time, self.last + self.min_gap)
+        _sleep_until(deadline)
+        now = time.monotonic()
+        late = now - on_time
+        if late > self.period / 2:
+            self.late_ticks += 1
+        self.max_late = max(self.max_late, late)
+        self.k += 1
+        self.last = now
+        return now, late
+
+
+def _sleep_until(deadline: float):
+    """Sleep to within 0.3 ms of the deadline, then spin (time.sleep overshoots by up to a tick of the OS)."""
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        if left > 0.0006:
+            time.sleep(left - 0.0004)
+
+
+def point_cloud(points: np.ndarray, frame_id: str, stamp) -> PointCloud2:
+    """An unordered PointCloud2 of (N, 3) float32 x, y, z (m)."""
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    msg = PointCloud2()
+    msg.header.frame_id, msg.header.stamp = frame_id, stamp
+    msg.height, msg.width = 1, len(pts)
+    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, 12, 12 * len(pts), True
+    msg.data = pts.tobytes()
+    return msg
+
+
+def main(args=None):
+    # The stream thread must get the GIL back within a fraction of a control period when its deadline
+    # comes; CPython's default switch interval (5 ms) let executor threads hold it for up to 2.5 periods.
+    sys.setswitchinterval(2e-4)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        node = SimNode()
+    except (ValueError, KeyError, FileNotFoundError) as err:
+        print(f"sim_node: {err}", flush=True)
+        rclpy.shutdown()
+        return 2
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    try:
+        stop.wait()
+        node.get_logger().info("shutting down: ramping any motion to rest")
+        node.shutdown()
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        rclpy.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,103 @@
+"""Work that sim_node runs in child processes, off its executor: the optimiser and the fluid twin.
+
+Both run fluidlab_core (Taichi) in a process of their own, started with the "spawn" method (a fork of a
+process with DDS threads is unsafe), so the node's executor and its 500 Hz command stream never wait on a
+simulation. They talk to the node through multiprocessing queues of plain dicts and numpy arrays; the node
+holds no physics (DESIGN.md §2).
+
+optimise_worker: runs fluidlab_core.optim.optimise and puts {"kind": "feedback", ...} per iteration and one
+  {"kind": "result", ...} or {"kind": "error", ...}. A set `stop` event ends it at the next iteration (the
+  node also terminates the process if that takes longer than it allows for a cancel).
+fluid_worker: the twin's fluid. It receives {"kind": "reset"} and {"kind": "pose", "pose": (7,)} messages;
+  each pose is where the executed tool is one task step (dt) after the previous one, and the worker steps the
+  task's simulator with the twist that takes its tool there:
+      v = (p_target - p_sim) / dt,   w = rotvec(R_target R_sim^T) / dt
+  (tracking the executed pose, so the simulated tool does not drift from the arm's). It puts
+  {"kind": "particles", "positions": (N, 3) float32, "step": k} after the reset and every `publish_every`
+  steps.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import time
+import traceback
+
+
+def _init_core(arch: str, precision: str):
+    import fluidlab_core
+
+    fluidlab_core.init(arch=arch, precision=precision)
+
+
+def optimise_worker(request: dict, out, stop, folder: str, arch: str = "cpu", precision: str = "f32"):
+    """request: task, size, method, budget, seed, name, path (where to save, decided by the node)."""
+    from pathlib import Path
+
+    try:
+        _init_core(arch, precision)
+        from fluidlab_core import optim, tasks
+
+        task = tasks.make(request["task"], size=request["size"])
+        t0 = time.monotonic()
+
+        def callback(p):
+            out.put({"kind": "feedback", "iteration": int(p.iteration), "loss": float(p.loss),
+                     "best_loss": float(p.best_loss), "steps": int(p.steps), "elapsed": time.monotonic() - t0})
+            return stop.is_set()
+
+        traj = optim.optimise(task, request["method"], int(request["budget"]), seed=int(request["seed"]),
+                              callback=callback)
+        if stop.is_set():
+            out.put({"kind": "cancelled"})
+            return
+        path = Path(request["path"])
+        traj.save(path)  # atomic: a complete file or none
+        out.put({"kind": "result", "name": path.stem, "path": str(path),
+                 "final_loss": float(traj.metadata["final_loss"]), "iterations": traj.metadata["iterations"]})
+    except BaseException as err:  # noqa: BLE001 - reported to the node, which fails the goal with it
+        out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})
+
+
+def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", precision: str = "f32",
+                 publish_every: int = 5, nice: int = 10):
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    try:
+        os.nice(nice)  # the command stream in the node comes first
+    except OSError:
+        pass
+    try:
+        _init_core(arch, precision)
+        from fluidlab_core import tasks
+
+        task = tasks.make(task_name, size=size)
+        sim = task.simulator()
+        dt = task.dt
+        tool = task.tool_name
+        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0])})
+        step = 0
+        while True:
+            try:
+                msg = inbox.get(timeout=1.0)
+            except queue.Empty:
+                continue
+            if msg is None or msg.get("kind") == "quit":
+                return
+            if msg["kind"] == "reset":
+                pos = msg.get("tool_position")
+                task.reset(sim, tool_position=None if pos is None else np.asarray(pos, dtype=float))
+                step = 0
+                out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": 0})
+            elif msg["kind"] == "pose":
+                target = np.asarray(msg["pose"], dtype=float)
+                cur = sim.tool_pose(tool)
+                v = (target[:3] - cur[:3]) / dt
+                w = (Rotation.from_quat(target[3:]) * Rotation.from_quat(cur[3:]).inv()).as_rotvec() / dt
+                sim.step(np.concatenate([v, w]))
+                step += 1
+                if step % publish_every == 0 or msg.get("last"):
+                    out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step})
+    except BaseException as err:  # noqa: BLE001
+        out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})

@@ -1,0 +1,174 @@
+"""Shared set-up of the ROS tests: an isolated graph, nodes started through their console scripts as separate
+processes, and an rclpy client in the test process.
+
+Isolation: every test module gets its own ROS_DOMAIN_ID (from the process id, so parallel pytest workers
+differ) and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (DDS stays on loopback). Nodes are stopped with SIGINT
+(SIGKILL would leave /dev/shm/fastrtps_* files behind) and killed only if they do not end in 15 s.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="ROS 2 (ros-jazzy-rclpy, requirements-ros.txt) is not installed")
+pytest.importorskip("fluidlab_msgs", reason="fluidlab_msgs is not built (pip install ./fluidlab_msgs_py)")
+
+from rclpy.action import ActionClient  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+
+
+def console_script(name: str) -> str:
+    path = BIN / name
+    if not path.exists():
+        pytest.fail(f"console script {name!r} is not installed next to {sys.executable}; run the README's install "
+                    f"command (pip install .)")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def ros_env():
+    domain = 100 + (os.getpid() * 7 + hash(time.time())) % 100
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               RMW_IMPLEMENTATION="rmw_fastrtps_cpp", PYTHONUNBUFFERED="1", FLUIDLAB_CPU_THREADS="1")
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "RMW_IMPLEMENTATION")}
+    os.environ.update({k: env[k] for k in saved})
+    yield env
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+class Proc:
+    """A child process with its output in a log file (read on failure)."""
+
+    def __init__(self, args, env, log: Path):
+        self.log = log
+        self.f = open(log, "w")
+        self.p = subprocess.Popen(args, env=env, stdout=self.f, stderr=subprocess.STDOUT, cwd=str(ROOT))
+
+    def text(self) -> str:
+        if not self.f.closed:
+            self.f.flush()
+        return self.log.read_text()
+
+    def stop(self, timeout: float = 15.0) -> int:
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGINT)
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        self.f.close()
+        return self.p.returncode
+
+    def last_json(self) -> dict:
+        lines = [ln for ln in self.text().splitlines() if ln.startswith("{")]
+        return json.loads(lines[-1])
+
+
+# CI shares two cores with Taichi compiles in the other test worker: a 20 ms stall of the stream thread
+# (the node's default late_tick_limit, meant for a real-time machine) happens there now and then. The tests
+# allow 0.25 s, and the twin still judges every command that goes out.
+LATE_TICK_LIMIT = "late_tick_limit:=0.25"
+
+
+def start_node(env, tmp_path: Path, *params: str, name: str = "sim_node") -> Proc:
+    args = [console_script("sim_node"), "--ros-args", "-p", LATE_TICK_LIMIT]
+    for p in params:
+        args += ["-p", p]
+    return Proc(args, env, tmp_path / f"{name}.log")
+
+
+def start_monitor(env, tmp_path: Path, topic: str, name: str = "monitor") -> tuple[Proc, Path]:
+    out = tmp_path / f"{name}.npz"
+    ready = tmp_path / f"{name}.ready"
+    proc = Proc([console_script("command_monitor"), "--topic", topic, "--out", str(out), "--ready-file", str(ready)],
+                env, tmp_path / f"{name}.log")
+    deadline = time.monotonic() + 60
+    while not ready.exists():
+        assert proc.p.poll() is None, proc.text()
+        assert time.monotonic() < deadline, "command_monitor did not start"
+        time.sleep(0.1)
+    return proc, out
+
+
+class Client:
+    """An rclpy node in the test process, spun in a background thread."""
+
+    def __init__(self):
+        rclpy.init()
+        self.node = rclpy.create_node("test_client")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown()
+
+    @staticmethod
+    def wait(future, timeout: float, what: str):
+        deadline = time.monotonic() + timeout
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+            time.sleep(0.02)
+        return future.result()
+
+    def action(self, kind, name: str, timeout: float = 60.0):
+        client = ActionClient(self.node, kind, name)
+        assert client.wait_for_server(timeout_sec=timeout), f"action server {name} did not appear in {timeout} s"
+        return client
+
+    def service(self, kind, name: str, timeout: float = 60.0):
+        client = self.node.create_client(kind, name)
+        assert client.wait_for_service(timeout_sec=timeout), f"service {name} did not appear in {timeout} s"
+        return client
+
+    def call(self, client, request, timeout: float = 30.0):
+        return self.wait(client.call_async(request), timeout, f"a response from {client.srv_name}")
+
+    def run_goal(self, client, goal, timeout: float, feedback=None):
+        """Send a goal and wait for its result; returns (accepted, status, result)."""
+        handle = self.wait(client.send_goal_async(goal, feedback_callback=feedback), 30, "goal acceptance")
+        if not handle.accepted:
+            return False, None, None
+        res = self.wait(handle.get_result_async(), timeout, "the goal's result")
+        return True, res.status, res.result
+
+    def subscribe(self, kind, topic: str, qos=10):
+        got = []
+        self.node.create_subscription(kind, topic, lambda m: got.append((time.monotonic(), m)), qos)
+        return got
+
+
+@pytest.fixture(scope="module")
+def client(ros_env):
+    c = Client()
+    yield c
+    c.close()
+
+
+@pytest.fixture
+def trajectories(tmp_path):
+    """A trajectory folder with the shipped trajectories."""
+    folder = tmp_path / "trajectories"
+    shutil.copytree(ROOT / "trajectories", folder, ignore=shutil.ignore_patterns("*.mp4"))
+    return folder

@@ -1,0 +1,271 @@
+"""sim_node over a real rclpy graph: the node, a command monitor and a fake arm are separate processes started
+through their console scripts; this process is an rclpy client.
+
+What is checked, and by whom:
+- optimise: a small CMA-ES goal succeeds with feedback and saves a loadable trajectory; a cancel ends a long
+  goal within a second and saves nothing;
+- execute on the twin: the monitor (another process) counts every command, measures the rate, and checks the
+  commands held for 1 ms ticks against the FR3's official limits; the twin's joint states end where the plan
+  ends; the fluid twin publishes PointCloud2 particles;
+- ~/stop and cancel mid-motion ramp to rest within the limits;
+- bad input: every case aborts with a message naming the problem, and the monitor sees no command at all;
+- robot mode: nothing before ~/arm; a joint-state gap stops the arm (ramp to rest, goal aborted).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+from action_msgs.msg import GoalStatus
+
+from .conftest import ROOT, Proc, console_script, start_monitor, start_node
+
+from fluidlab_msgs.action import Execute, Optimise  # noqa: E402
+from fluidlab_msgs.srv import GetTrajectory, ListTrajectories  # noqa: E402
+from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+
+from fluidlab_core.trajectory import Trajectory  # noqa: E402
+from fluidlab_ros.limits import JointLimits  # noqa: E402
+from fluidlab_ros.monitor import stream_stats  # noqa: E402
+from fluidlab_ros.robot import READY_Q  # noqa: E402
+
+LIM = JointLimits.load("fr3")
+MIXING = "Mixing_dp-h_seed2_small"
+
+
+def stream_of(monitor: Proc, out) -> tuple[np.ndarray, np.ndarray, dict]:
+    assert monitor.stop() == 0, monitor.text()
+    data = np.load(out)
+    return data["times"], data["commands"], monitor.last_json()
+
+
+def assert_within_limits(commands: np.ndarray, q0=READY_Q):
+    """Independent of the node's verifier: hold each 500 Hz command for two 1 ms ticks from rest and check
+    the official limits by finite differences, and the positions."""
+    v = np.repeat(commands, 2, axis=0)
+    v_ext = np.vstack([np.zeros((2, 7)), v, np.zeros((2, 7))])
+    acc = np.diff(v_ext, axis=0) / 1e-3
+    jerk = np.diff(acc, axis=0) / 1e-3
+    q = q0 + 1e-3 * np.cumsum(v, axis=0)
+    assert np.all(np.abs(v) <= LIM.velocity), np.abs(v).max(axis=0)
+    assert np.all(np.abs(acc) <= LIM.acceleration), np.abs(acc).max(axis=0)
+    assert np.all(np.abs(jerk) <= LIM.jerk), np.abs(jerk).max(axis=0)
+    assert np.all(q > LIM.lower) and np.all(q < LIM.upper)
+    assert not commands[-1].any(), "the stream must end with the arm commanded to rest"
+
+
+def test_optimise_goal_succeeds_with_feedback_and_cancel_ends_a_goal_within_a_second(ros_env, client, tmp_path,
+                                                                                      trajectories):
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
+    try:
+        act = client.action(Optimise, "/sim_node/optimise")
+        feedback = []
+        goal = Optimise.Goal(task="LatteArtStir", size="small", method="cma-es", budget=2 * 75, seed=0,
+                             name="ros_opt")
+        accepted, status, result = client.run_goal(act, goal, timeout=600, feedback=lambda m: feedback.append(m))
+        assert accepted and status == GoalStatus.STATUS_SUCCEEDED, (result.message if result else None, node.text())
+        assert result.trajectory_name == "ros_opt" and math.isfinite(result.final_loss)
+        assert feedback and all(math.isfinite(f.feedback.loss) for f in feedback)
+        saved = Trajectory.load(trajectories / "LatteArtStir" / "ros_opt.json")
+        assert saved.task == "LatteArtStir" and saved.method == "cma-es"
+        assert saved.metadata["final_loss"] == pytest.approx(result.final_loss)
+
+        listed = client.call(client.service(ListTrajectories, "/sim_node/list_trajectories"),
+                             ListTrajectories.Request(task="LatteArtStir"))
+        assert "ros_opt" in [t.name for t in listed.trajectories]
+        assert {t.task for t in listed.trajectories} == {"LatteArtStir"}
+        got = client.call(client.service(GetTrajectory, "/sim_node/get_trajectory"), GetTrajectory.Request(name="ros_opt"))
+        assert got.success and json.loads(got.document)["task"] == "LatteArtStir" and got.info.steps == 75
+
+        # cancel: a long goal, cancelled once it reports its first iteration
+        long_goal = Optimise.Goal(task="LatteArtStir", size="small", method="cma-es", budget=1000 * 75, seed=1,
+                                  name="ros_cancelled")
+        first = []
+        handle = client.wait(act.send_goal_async(long_goal, feedback_callback=lambda m: first.append(m)), 30,
+                             "acceptance")
+        assert handle.accepted
+        deadline = time.monotonic() + 300
+        while not first:
+            assert time.monotonic() < deadline, node.text()
+            time.sleep(0.05)
+        t_cancel = time.monotonic()
+        client.wait(handle.cancel_goal_async(), 10, "the cancel response")
+        res = client.wait(handle.get_result_async(), 10, "the cancelled goal's result")
+        elapsed = time.monotonic() - t_cancel
+        assert res.status == GoalStatus.STATUS_CANCELED, res.result.message
+        assert elapsed < 1.0, f"cancel took {elapsed:.2f} s"
+        assert not (trajectories / "LatteArtStir" / "ros_cancelled.json").exists()
+        assert not list((trajectories / "LatteArtStir").glob(".*")), "no partial files"
+    finally:
+        assert node.stop() == 0, node.text()
+
+
+def test_execute_on_the_twin_streams_at_the_rate_within_limits_and_the_fluid_follows(ros_env, client, tmp_path,
+                                                                                      trajectories):
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}")
+    monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
+    try:
+        particles = client.subscribe(PointCloud2, "/sim_node/particles")
+        twin_js = client.subscribe(JointState, "/sim_node/twin/joint_states")
+        act = client.action(Execute, "/sim_node/execute")
+        dry = client.run_goal(act, Execute.Goal(trajectory_name=MIXING, dry_run=True), timeout=120)
+        assert dry[1] == GoalStatus.STATUS_SUCCEEDED and "nothing sent" in dry[2].message
+        feedback = []
+        accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=MIXING, target="twin"),
+                                                   timeout=300, feedback=lambda m: feedback.append(m.feedback))
+        assert accepted and status == GoalStatus.STATUS_SUCCEEDED, (result.message, node.text())
+        assert result.success and result.time_scale >= 1.0
+        assert feedback[-1].progress == pytest.approx(1.0) or any(f.progress > 0.9 for f in feedback)
+        # m: the twin follows the plan; late ticks (the arm holds the previous command longer) add drift
+        assert max(f.tracking_error for f in feedback) < 0.03
+        # the fluid twin stepped with the tool: particles arrive (its first compile may take a while)
+        deadline = time.monotonic() + 240
+        while len(particles) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(particles) >= 2, node.text()
+        cloud = particles[-1][1]
+        assert cloud.header.frame_id == "fr3_link0" and cloud.width > 1000 and cloud.point_step == 12
+        pts = np.frombuffer(bytes(cloud.data), dtype=np.float32).reshape(-1, 3)
+        assert np.all(np.abs(pts[:, :2] - [0.5, 0.0]) < 0.2)  # in the cup, around the scene origin (0.5, 0, 0)
+        time.sleep(0.2)
+    finally:
+        times, commands, stats = stream_of(monitor, out)
+        assert node.stop() == 0, node.text()
+    expected = int(round(result.duration * 500))
+    assert len(commands) == expected, f"the monitor saw {len(commands)} of {expected} commands"
+    assert stats["rate"] == pytest.approx(500.0, rel=0.01), stats
+    assert_within_limits(commands)
+    # the twin ends where the commands integrate to
+    q_end = READY_Q + 2e-3 * commands.sum(axis=0)
+    # (to within what the arrival jitter changes: a command held for one tick more or less)
+    np.testing.assert_allclose(np.array(twin_js[-1][1].position), q_end, atol=1e-2)
+
+
+def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp_path, trajectories):
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
+    monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
+    try:
+        act = client.action(Execute, "/sim_node/execute")
+        stop = client.service(Trigger, "/sim_node/stop")
+        for how in ("stop", "cancel"):
+            # speed 0.5: a longer stream; interrupt it once a fifth of it has gone out
+            progress = []
+            handle = client.wait(act.send_goal_async(Execute.Goal(trajectory_name=MIXING, speed_scale=0.5),
+                                                     feedback_callback=lambda m: progress.append(m.feedback.progress)),
+                                 30, "acceptance")
+            deadline = time.monotonic() + 120
+            while not progress or progress[-1] < 0.2:
+                assert time.monotonic() < deadline, node.text()
+                time.sleep(0.02)
+            if how == "stop":
+                assert client.call(stop, Trigger.Request()).success
+            else:
+                client.wait(handle.cancel_goal_async(), 10, "the cancel response")
+            res = client.wait(handle.get_result_async(), 30, "the interrupted goal's result")
+            want = GoalStatus.STATUS_ABORTED if how == "stop" else GoalStatus.STATUS_CANCELED
+            assert res.status == want, res.result.message
+            assert "ramped to rest" in res.result.message and progress[-1] < 0.9, res.result.message
+            if how == "stop":
+                assert "stopped by ~/stop" in res.result.message
+        time.sleep(0.2)
+    finally:
+        times, commands, stats = stream_of(monitor, out)
+        assert node.stop() == 0, node.text()
+    # two streams, each ending at rest; the gap between them splits them
+    split = int(np.argmax(np.diff(times))) + 1
+    first, second = commands[:split], commands[split:]
+    assert not first[-1].any() and not second[-1].any()
+    assert_within_limits(first)
+    q_second = READY_Q + 2e-3 * first.sum(axis=0)
+    assert_within_limits(second, q_second)
+
+
+def bad_files(folder):
+    src = Trajectory.load(folder / "Mixing" / f"{MIXING}.json")
+    (folder / "Mixing" / "malformed.json").write_text('{"format": "fluidlab-trajectory", "twists": [1, 2')
+    doc = json.loads((folder / "Mixing" / f"{MIXING}.json").read_text())
+    doc["twists"][5][1] = float("nan")
+    (folder / "Mixing" / "has_nan.json").write_text(json.dumps(doc))
+    far = Trajectory(task="Mixing", dt=src.dt, tool=src.tool, initial_pose=[1.5, 0.0, 0.3, 0, 0, 0, 1],
+                     twists=np.zeros((10, 6)))
+    far.save(folder / "Mixing" / "out_of_reach.json")
+
+
+def test_bad_input_is_refused_with_a_reason_and_nothing_is_sent(ros_env, client, tmp_path, trajectories):
+    bad_files(trajectories)
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
+    monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
+    try:
+        act = client.action(Execute, "/sim_node/execute")
+        cases = [
+            (Execute.Goal(trajectory_name="does_not_exist"), "no trajectory named 'does_not_exist'"),
+            (Execute.Goal(trajectory_name="../Mixing/" + MIXING), "not allowed"),
+            (Execute.Goal(trajectory_name="malformed"), "not valid JSON"),
+            (Execute.Goal(trajectory_name="has_nan"), "NaN"),
+            (Execute.Goal(trajectory_name="out_of_reach"), "reach"),
+            (Execute.Goal(trajectory_name=MIXING, target="moon"), "unknown target 'moon'"),
+            (Execute.Goal(trajectory_name=MIXING, speed_scale=2.0), "speed_scale"),
+            (Execute.Goal(trajectory_name=MIXING, target="robot"), "robot mode"),
+        ]
+        for goal, phrase in cases:
+            accepted, status, result = client.run_goal(act, goal, timeout=120)
+            assert accepted and status == GoalStatus.STATUS_ABORTED, (goal, result.message if result else None)
+            assert phrase.lower() in result.message.lower(), (phrase, result.message)
+            assert not result.success
+        opt = client.action(Optimise, "/sim_node/optimise")
+        ocases = [
+            (Optimise.Goal(task="Juggling", method="dp", budget=1000), "unknown task 'Juggling'"),
+            (Optimise.Goal(task="Mixing", method="sgd", budget=1000), "unknown method 'sgd'"),
+            (Optimise.Goal(task="Mixing", method="dp", budget=0), "budget"),
+            (Optimise.Goal(task="Mixing", method="dp", budget=1000, name="a/b"), "not allowed"),
+            (Optimise.Goal(task="Mixing", method="dp", budget=1000, name=MIXING), "exists already"),
+        ]
+        for goal, phrase in ocases:
+            accepted, status, result = client.run_goal(opt, goal, timeout=60)
+            assert accepted and status == GoalStatus.STATUS_ABORTED, (goal, result.message if result else None)
+            assert phrase.lower() in result.message.lower(), (phrase, result.message)
+        got = client.call(client.service(GetTrajectory, "/sim_node/get_trajectory"), GetTrajectory.Request(name="x/y"))
+        assert not got.success and "not allowed" in got.message
+        time.sleep(0.3)
+    finally:
+        times, commands, stats = stream_of(monitor, out)
+        assert node.stop() == 0, node.text()
+    assert len(commands) == 0, "a refused goal must send nothing"
+
+
+def test_robot_mode_needs_arming_and_a_joint_state_gap_stops_the_arm(ros_env, client, tmp_path, trajectories):
+    arm_out = tmp_path / "arm.npz"
+    fake = Proc([console_script("python"), str(ROOT / "tests" / "ros" / "fake_arm.py"), "--command-topic",
+                 "/fake_controller/commands", "--joint-state-topic", "/fake/joint_states", "--drop-after", "600",
+                 "--out", str(arm_out)], ros_env, tmp_path / "fake_arm.log")
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false", "mode:=robot",
+                      "command_topic:=/fake_controller/commands", "joint_state_topic:=/fake/joint_states",
+                      "joint_state_timeout:=0.1")
+    try:
+        act = client.action(Execute, "/sim_node/execute")
+        arm = client.service(SetBool, "/sim_node/arm")
+        accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=MIXING, target="robot"), 60)
+        assert status == GoalStatus.STATUS_ABORTED and "not armed" in result.message
+        deadline = time.monotonic() + 30
+        while not (r := client.call(arm, SetBool.Request(data=True))).success:
+            assert time.monotonic() < deadline, r.message
+            time.sleep(0.2)
+        accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=MIXING, target="robot",
+                                                                     speed_scale=0.5), 120)
+        assert status == GoalStatus.STATUS_ABORTED, result.message
+        assert "joint states on /fake/joint_states stopped" in result.message, result.message
+        time.sleep(0.3)
+    finally:
+        assert node.stop() == 0, node.text()
+        fake.stop()
+    data = np.load(arm_out)
+    times, commands = data["times"], data["commands"]
+    lost_at = times[599]
+    assert len(commands) > 600
+    # the node noticed the gap after joint_state_timeout (0.1 s) and ramped to rest (under 2 s at these speeds)
+    assert times[-1] - lost_at < 0.1 + 0.05 + 2.0, times[-1] - lost_at
+    assert_within_limits(commands)
