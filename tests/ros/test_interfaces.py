@@ -155,12 +155,15 @@ SERVER = textwrap.dedent('''
 ''')
 
 
+# The ROS environment of both processes: their own domain, discovery on loopback only, nothing inherited that
+# would widen or override it.
+ROS_ENV = {"ROS_DOMAIN_ID": str(DOMAIN_ID), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+ROS_ENV_UNSET = ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS")
+
+
 def _ros_env():
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    for name in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS"):
-        env.pop(name, None)
+    env = {k: v for k, v in os.environ.items() if k not in ROS_ENV_UNSET}
+    env.update(ROS_ENV)
     return env
 
 
@@ -181,7 +184,8 @@ def _wait_for_line(proc, expected, timeout):
                 break
     finally:
         selector.close()
-    proc.kill() if proc.poll() is None else None
+    if proc.poll() is None:
+        proc.kill()
     _, err = proc.communicate(timeout=STOP_TIMEOUT)
     pytest.fail(f"test server did not print {expected!r} within {timeout} s (exit code {proc.returncode}):\n{err}")
 
@@ -212,10 +216,9 @@ def server(tmp_path_factory):
 def client_node(server):
     """A node in this process, on the server's domain, with its own context (nothing global is left initialised)."""
     with pytest.MonkeyPatch.context() as mp:
-        for name, value in _ros_env().items():
-            if os.environ.get(name) != value:
-                mp.setenv(name, value)
-        for name in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS"):
+        for name, value in ROS_ENV.items():
+            mp.setenv(name, value)
+        for name in ROS_ENV_UNSET:
             mp.delenv(name, raising=False)
         context = Context()
         rclpy.init(context=context)
