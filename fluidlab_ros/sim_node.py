@@ -157,7 +157,7 @@ class SimNode(Node):
         timers = MutuallyExclusiveCallbackGroup()
         # a deep history: a reliable subscriber that stalls (a loaded machine) still gets every command
         self.pub_commands = self.create_publisher(Float64MultiArray, "~/commands", 1000)
-        self.pub_controller = (self.create_publisher(Float64MultiArray, self.command_topic, 10)
+        self.pub_controller = (self.create_publisher(Float64MultiArray, self.command_topic, 1000)
                                if self.mode == "robot" else None)
         self.pub_twin_js = self.create_publisher(JointState, "~/twin/joint_states", 10)
         self.pub_tool = self.create_publisher(PoseStamped, "~/tool_pose", 10)

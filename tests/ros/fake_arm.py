@@ -62,6 +62,11 @@ def main():
     spin = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
     spin.start()
     stop.wait()
+    while True:  # drain what is still on its way
+        n = len(cmds)
+        time.sleep(0.5)
+        if len(cmds) == n:
+            break
     rclpy.shutdown()
     spin.join(2.0)
     np.savez(args.out, times=np.array(times), commands=np.array(cmds, dtype=float) if cmds else np.zeros((0, 7)))

@@ -133,8 +133,9 @@ def test_execute_on_the_twin_streams_at_the_rate_within_limits_and_the_fluid_fol
         assert np.all(np.abs(pts[:, :2] - [0.5, 0.0]) < 0.2)  # in the cup, around the scene origin (0.5, 0, 0)
         time.sleep(0.2)
     finally:
+        node_rc = node.stop()
         times, commands, stats = stream_of(monitor, out)
-        assert node.stop() == 0, node.text()
+        assert node_rc == 0, node.text()
     expected = int(round(result.duration * 500))
     assert len(commands) == expected, f"the monitor saw {len(commands)} of {expected} commands"
     assert stats["rate"] == pytest.approx(500.0, rel=0.01), stats
@@ -173,10 +174,14 @@ def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp
                 assert "stopped by ~/stop" in res.result.message
         time.sleep(0.2)
     finally:
+        node_rc = node.stop()
         times, commands, stats = stream_of(monitor, out)
-        assert node.stop() == 0, node.text()
-    # two streams, each ending at rest; the gap between them splits them
-    split = int(np.argmax(np.diff(times))) + 1
+        assert node_rc == 0, node.text()
+    # two streams, each ending with the one all-zero command a stream sends (arrival gaps are no guide: a
+    # loaded machine can stall the monitor longer than the planning pause between the goals)
+    zeros = np.nonzero(~commands.any(axis=1))[0]
+    assert len(zeros) == 2, zeros
+    split = int(zeros[0]) + 1
     first, second = commands[:split], commands[split:]
     assert not first[-1].any() and not second[-1].any()
     assert_within_limits(first)
@@ -232,8 +237,9 @@ def test_bad_input_is_refused_with_a_reason_and_nothing_is_sent(ros_env, client,
         assert not got.success and "not allowed" in got.message
         time.sleep(0.3)
     finally:
+        node_rc = node.stop()
         times, commands, stats = stream_of(monitor, out)
-        assert node.stop() == 0, node.text()
+        assert node_rc == 0, node.text()
     assert len(commands) == 0, "a refused goal must send nothing"
 
 
