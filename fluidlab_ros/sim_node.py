@@ -6,7 +6,9 @@
 Interfaces (all under the node's name, `~/` = /sim_node/ by default; types in fluidlab_msgs and
 common_interfaces):
   actions   ~/optimise  fluidlab_msgs/action/Optimise   optimiser in a worker process; feedback each iteration
-            ~/execute   fluidlab_msgs/action/Execute    plan (fluidlab_ros.pipeline), then stream at control_rate
+            ~/execute   fluidlab_msgs/action/Execute    plan (fluidlab_ros.pipeline), then stream at control_rate;
+                                                        every execution is recorded (rosbag2 MCAP, recording.py)
+            ~/replay    fluidlab_msgs/action/Replay     a recording into the fluid, compared with the plan
   services  ~/list_trajectories  fluidlab_msgs/srv/ListTrajectories
             ~/get_trajectory     fluidlab_msgs/srv/GetTrajectory
             ~/stop               std_srvs/srv/Trigger     ramp the arm to rest and abort the execute goal
@@ -33,6 +35,7 @@ kind runs is rejected.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import multiprocessing as mp
 import os
@@ -60,7 +63,7 @@ from sensor_msgs.msg import JointState, PointCloud2, PointField
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import SetBool, Trigger
 
-from fluidlab_msgs.action import Execute, Optimise
+from fluidlab_msgs.action import Execute, Optimise, Replay
 from fluidlab_msgs.msg import TrajectoryInfo
 from fluidlab_msgs.srv import GetTrajectory, ListTrajectories
 
@@ -93,6 +96,9 @@ class Stream:
     max_late: float = 0.0  # s
     sent_times: list = field(default_factory=list)
     done: threading.Event = field(default_factory=threading.Event)
+    t0: float = 0.0  # time.monotonic() of command 0's deadline
+    recorder: object = None  # recording.Recorder, or None
+    planned_tool: np.ndarray | None = None  # (K + 1, 7) tool poses of the plan's positions
 
 
 class SimNode(Node):
@@ -121,6 +127,8 @@ class SimNode(Node):
         q_init = list(p("twin_initial_positions", READY_Q.tolist()).value)
         self.cancel_timeout = float(p("cancel_timeout", 0.5).value)
         self.realtime_priority = int(p("realtime_priority", 10).value)
+        self.record = bool(p("record", True).value)
+        self.recording_folder = Path(p("recording_folder", "recordings").value).expanduser().resolve()
 
         if self.mode not in MODES:
             raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
@@ -174,6 +182,9 @@ class SimNode(Node):
                      callback_group=cb)
         ActionServer(self, Execute, "~/execute", execute_callback=self._execute, goal_callback=self._execute_goal,
                      cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=cb)
+        ActionServer(self, Replay, "~/replay", execute_callback=self._replay, goal_callback=self._replay_goal,
+                     cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=cb)
+        self.replaying = False
         self.create_service(ListTrajectories, "~/list_trajectories", self._list, callback_group=cb)
         self.create_service(GetTrajectory, "~/get_trajectory", self._get, callback_group=cb)
         self.create_service(Trigger, "~/stop", self._stop, callback_group=cb)
@@ -198,6 +209,11 @@ class SimNode(Node):
         v = np.array([msg.velocity[i] for i in idx]) if len(msg.velocity) == len(msg.name) else None
         with self._lock:
             self.measured_q, self.measured_v, self.measured_time = q, v, time.monotonic()
+        stream = self.stream
+        if stream is not None and stream.recorder is not None:
+            out = JointState(name=list(names), position=q.tolist(), velocity=[] if v is None else v.tolist())
+            out.header = msg.header
+            stream.recorder.put("/sim_node/measured_joint_states", out, time.time_ns())
 
     def _joint_state_age(self) -> float:
         return time.monotonic() - self.measured_time
@@ -360,6 +376,72 @@ class SimNode(Node):
         finally:
             self.optimising = False
 
+    # --- replay ------------------------------------------------------------------------------------------
+    def _replay_goal(self, goal):
+        if self.replaying:
+            self.get_logger().warn("rejected a replay goal: another replay is running")
+            return GoalResponse.REJECT
+        self.replaying = True
+        return GoalResponse.ACCEPT
+
+    def _replay(self, goal_handle):
+        from fluidlab_ros.replay import parse_disturbance
+
+        g = goal_handle.request
+        result = Replay.Result()
+        try:
+            path = Path(g.recording_path).expanduser()
+            if not path.is_absolute():
+                path = self.recording_folder / path
+            if not g.recording_path or not path.is_dir():
+                raise ValueError(f"no recording folder at {path}")
+            parse_disturbance(g.disturbance)  # refuses unknown keys before any work
+            out_dir = Path(g.out_dir).expanduser() if g.out_dir else path / "replay"
+        except ValueError as err:
+            self.replaying = False
+            result.message = str(err)
+            goal_handle.abort()
+            return result
+        out = self._mp.Queue()
+        proc = self._mp.Process(target=workers.replay_worker, name="fluidlab-replay", daemon=True,
+                                args=(str(path), str(out_dir), g.disturbance, out, self.arch, self.precision))
+        proc.start()
+        try:
+            while True:
+                if goal_handle.is_cancel_requested:
+                    proc.terminate()
+                    proc.join(2.0)
+                    result.message = "cancelled"
+                    goal_handle.canceled()
+                    return result
+                try:
+                    msg = out.get(timeout=0.1)
+                except queue.Empty:
+                    if not proc.is_alive() and out.empty():
+                        result.message = f"the replay process ended unexpectedly (exit code {proc.exitcode})"
+                        goal_handle.abort()
+                        return result
+                    continue
+                if msg["kind"] == "feedback":
+                    goal_handle.publish_feedback(Replay.Feedback(phase=msg["phase"], progress=msg["progress"]))
+                elif msg["kind"] == "result":
+                    rep = msg["report"]
+                    result.success, result.report_path = True, msg["report_path"]
+                    result.loss_planned, result.loss_replayed = rep["loss_planned"], rep["loss_replayed"]
+                    result.tool_path_error = rep["tool_path_error_task_max"]
+                    result.message = (f"loss planned {rep['loss_planned']:.6g}, replayed {rep['loss_replayed']:.6g}; "
+                                      f"tool path error {rep['tool_path_error_task_max'] * 1e3:.3g} mm"
+                                      + ("" if rep["closed"] else "; the recording was never closed (crash?)"))
+                    goal_handle.succeed()
+                    return result
+                else:
+                    result.message = f"replay failed: {msg['message']}"
+                    goal_handle.abort()
+                    return result
+        finally:
+            proc.join(5.0)
+            self.replaying = False
+
     # --- execute -----------------------------------------------------------------------------------------
     def _execute_goal(self, goal):
         if self.stream is not None or getattr(self, "_planning", False):
@@ -429,14 +511,30 @@ class SimNode(Node):
             return result
 
         stream = Stream(plan=pl, to_robot=(target == "robot"))
+        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
+        pos, rot = fk.tool_positions_rotations(pl.positions)
+        from scipy.spatial.transform import Rotation
+        stream.planned_tool = np.hstack([pos, Rotation.from_matrix(rot).as_quat()])
+        if self.record:
+            try:
+                stream.recorder = self._open_recording(g)
+            except Exception as err:  # noqa: BLE001 - refuse to move without the record that was asked for
+                self._planning = False
+                result.success, result.message = False, f"cannot open the recording, nothing sent: {err}"
+                self.get_logger().error(result.message)
+                goal_handle.abort()
+                return result
         if self.fluid_twin:
             self._fluid_reset(traj)
+        lead = 0.05  # s from now to the first command: the same instant on both clocks
+        stream.t0, start_wall = time.monotonic() + lead, time.time() + lead
+        if stream.recorder is not None:
+            stream.recorder.write_metadata(self._recording_metadata(g, traj, pl, target, start_wall))
         self.stream = stream
         self._planning = False
         thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
         self.get_logger().info(f"executing on the {target}: {summary}")
         thread.start()
-        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
         plan_tool = None
         worst = 0.0
         while not stream.done.wait(0.1):
@@ -455,15 +553,22 @@ class SimNode(Node):
         thread.join()
         self.stream = None
         result.max_tracking_error = worst
+        note = ""
+        if stream.recorder is not None:
+            time.sleep(0.2)  # the fluid's last particles
+            path = stream.recorder.close()
+            result.recording_path = str(path)
+            note = f"; recorded in {path}" + (f" (recording problem: {stream.recorder.error})"
+                                               if stream.recorder.error else "")
         if stream.outcome == "done":
             result.success = True
             result.message = (f"done: {summary}; max tracking error {worst * 1e3:.3g} mm; "
-                              f"{stream.late_ticks} late ticks (max {stream.max_late * 1e3:.3g} ms)")
+                              f"{stream.late_ticks} late ticks (max {stream.max_late * 1e3:.3g} ms)" + note)
             goal_handle.succeed()
         else:
             result.success = False
             result.message = (f"stopped after {stream.index} of {len(pl.velocities)} commands: {stream.outcome}"
-                              + (f" ({stream.reflex})" if stream.reflex else "") + "; the arm was ramped to rest")
+                              + (f" ({stream.reflex})" if stream.reflex else "") + "; the arm was ramped to rest" + note)
             if stream.outcome == "cancelled" and goal_handle.is_cancel_requested:
                 goal_handle.canceled()
             else:
@@ -472,6 +577,67 @@ class SimNode(Node):
         return result
 
     # --- the command stream ------------------------------------------------------------------------------
+    def _open_recording(self, g):
+        from fluidlab_ros.recording import Recorder
+
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+        folder = self.recording_folder / f"{stamp}_{g.trajectory_name}"
+        n = 1
+        while folder.exists():
+            n += 1
+            folder = self.recording_folder / f"{stamp}_{g.trajectory_name}_{n}"
+        return Recorder(folder)
+
+    def _recording_metadata(self, g, traj, pl, target: str, start_wall: float) -> dict:
+        from fluidlab_core import __version__
+        from fluidlab_ros.recording import sha256_of
+
+        path = self.store.find(g.trajectory_name)
+        m = load_mounting(traj.task)
+        scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
+        T = 1.0 / self.control_rate
+        times = np.arange(len(pl.velocities) + 1) * T
+        r = np.full(len(times), np.nan)
+        seg = (times >= pl.task_start_time) & (times <= pl.task_end_time)
+        r[seg] = pl.task_time_map(times[seg] - pl.task_start_time)[0] * scale  # in the file's own time
+        meta = {"format": "fluidlab-recording", "version": 1, "trajectory_name": g.trajectory_name,
+                "trajectory_sha256": sha256_of(path), "trajectory_document": json.loads(path.read_text()),
+                "robot": self.robot_model, "joint_names": list(self.robot.joint_names),
+                "controller_joint_names": list(self.controller_joints), "control_rate": self.control_rate,
+                "mode": self.mode, "target": target, "speed_scale": scale,
+                "mounting": {"task": m.task, "scene_origin": m.scene_origin.tolist(),
+                             "flange_to_tool": m.flange_to_tool.tolist()},
+                "software_version": __version__, "start_time": start_wall,
+                "start_time_iso": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z",
+                "task_start_time": pl.task_start_time, "task_end_time": pl.task_end_time,
+                "plan_times": times.tolist(), "plan_traj_times": [None if np.isnan(v) else float(v) for v in r],
+                "plan_report": json.loads(json.dumps(pl.report.to_dict(), default=float)),
+                "q_start": pl.q_start.tolist()}
+        return meta
+
+    def _record(self, stream: Stream, k: int, command: np.ndarray, fk: Robot):
+        """Command k (or a stop-ramp command, k = -1) went out: record it with the arm states and tool poses."""
+        rec = stream.recorder
+        stamp = time.time_ns()
+        msg = Float64MultiArray(data=command[self.controller_order].tolist())
+        rec.put("/sim_node/commands", msg, stamp)
+        q, v = self.twin.state()
+        names = list(self.robot.joint_names)
+        js = JointState(name=names, position=q.tolist(), velocity=v.tolist())
+        js.header.stamp.sec, js.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        rec.put("/sim_node/twin/joint_states", js, stamp)
+        if self.mode != "robot" or not stream.to_robot:
+            rec.put("/sim_node/measured_joint_states", js, stamp)
+        if k >= 0:
+            pj = JointState(name=names, position=stream.plan.positions[k].tolist())
+            pj.header.stamp = js.header.stamp
+            rec.put("/sim_node/planned_joint_states", pj, stamp)
+            rec.put("/sim_node/planned_tool_pose", _pose_msg(stream.planned_tool[k], self.robot.base_frame, stamp), stamp)
+        arm_q = self._arm_positions()
+        if arm_q is not None:
+            rec.put("/sim_node/tool_pose", _pose_msg(se3_to_pose(fk.frame_placement(arm_q)), self.robot.base_frame,
+                                                     stamp), stamp)
+
     def _send(self, stream: Stream, command: np.ndarray, now: float) -> str:
         """Publish one command (and give it to the twin); returns a reason to stop, or ''."""
         msg = Float64MultiArray()
@@ -497,7 +663,7 @@ class SimNode(Node):
         n_task0 = int(round(pl.task_start_time * self.control_rate))
         n_task1 = int(round(pl.task_end_time * self.control_rate))
         fluid_every = max(1, int(round(traj.dt * self.control_rate)))
-        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool) if self.fluid_twin else None
+        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
         if self.realtime_priority > 0:
             try:  # SCHED_FIFO for this thread only (Linux: pid 0 is the calling thread)
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
@@ -507,7 +673,7 @@ class SimNode(Node):
                     self.get_logger().warn(f"the command stream runs without real-time priority ({err}); give the "
                                            f"process CAP_SYS_NICE (or rtprio in limits.conf) for fewer late ticks")
         last, prev = np.zeros(self.limits.dof), np.zeros(self.limits.dof)
-        clock = Schedule(T, time.monotonic() + 0.01)
+        clock = Schedule(T, stream.t0)
         reason = ""
         try:
             for k in range(len(cmds)):
@@ -530,11 +696,13 @@ class SimNode(Node):
                         break
                 stream.phase = "approach" if k < n_task0 else "task"
                 reason = self._send(stream, cmds[k], now)
+                if stream.recorder is not None:
+                    self._record(stream, k, cmds[k], fk)
                 prev, last = last, cmds[k]
                 stream.index = k + 1
                 if reason:
                     break
-                if fk is not None and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
+                if self.fluid_twin and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
                     self._fluid_pose(fk, last=(k + fluid_every >= n_task1))
             else:
                 stream.outcome = "done"
@@ -548,7 +716,10 @@ class SimNode(Node):
             # as one jump), starting one period after the last command
             for command in stop_ramp(last, prev, self.control_rate, self.limits, self.margin):
                 now, _ = clock.wait()
-                if self._send(stream, command, now):
+                stopped = self._send(stream, command, now)
+                if stream.recorder is not None:
+                    self._record(stream, -1, command, fk)
+                if stopped:
                     break
         except Exception as err:  # noqa: BLE001 - whatever happens, the stream ends and the goal learns why
             stream.outcome = f"internal error in the command stream: {err}"
@@ -605,6 +776,14 @@ class SimNode(Node):
             if msg["kind"] == "particles":
                 self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
                                                        self.get_clock().now().to_msg()))
+                stream = self.stream
+                if stream is not None and stream.recorder is not None:
+                    from fluidlab_ros.recording import downsample
+
+                    stamp = time.time_ns()
+                    cloud = point_cloud(downsample(msg["positions"]), self.robot.base_frame, None)
+                    cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+                    stream.recorder.put("/sim_node/particles", cloud, stamp)
             elif msg["kind"] == "error":
                 self.get_logger().error(f"the twin's fluid failed: {msg['message']}")
 
@@ -694,11 +873,23 @@ def _sleep_until(deadline: float):
             time.sleep(left - 0.0004)
 
 
+def _pose_msg(pose, frame_id: str, stamp_ns: int) -> PoseStamped:
+    ps = PoseStamped()
+    ps.header.frame_id = frame_id
+    ps.header.stamp.sec, ps.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(x) for x in pose[:3])
+    o = ps.pose.orientation
+    o.x, o.y, o.z, o.w = (float(x) for x in pose[3:])
+    return ps
+
+
 def point_cloud(points: np.ndarray, frame_id: str, stamp) -> PointCloud2:
     """An unordered PointCloud2 of (N, 3) float32 x, y, z (m)."""
     pts = np.ascontiguousarray(points, dtype=np.float32)
     msg = PointCloud2()
-    msg.header.frame_id, msg.header.stamp = frame_id, stamp
+    msg.header.frame_id = frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
     msg.height, msg.width = 1, len(pts)
     msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
     msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, 12, 12 * len(pts), True

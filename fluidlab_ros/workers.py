@@ -25,7 +25,12 @@ import traceback
 
 
 def _init_core(arch: str, precision: str):
+    import signal
+
     import fluidlab_core
+
+    # Ctrl-C in a terminal reaches the whole process group: the node, not its workers, decides when they end
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     fluidlab_core.init(arch=arch, precision=precision)
 
@@ -99,5 +104,24 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
                 step += 1
                 if step % publish_every == 0 or msg.get("last"):
                     out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step})
+    except BaseException as err:  # noqa: BLE001
+        out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})
+
+
+def replay_worker(path: str, out_dir: str, disturbance: str, out, arch: str = "cpu", precision: str = "f32"):
+    """Replay a recording (fluidlab_ros.replay) and put feedback and one result or error."""
+    try:
+        _init_core(arch, precision)
+        from fluidlab_ros.replay import replay
+
+        last = {}
+
+        def progress(phase, j, n):
+            if j == n or j - last.get(phase, 0) >= max(1, n // 20):
+                last[phase] = j
+                out.put({"kind": "feedback", "phase": phase, "progress": j / n})
+
+        rep = replay(path, out_dir, disturbance, progress=progress)
+        out.put({"kind": "result", "report": rep, "report_path": str(__import__("pathlib").Path(out_dir) / "report.json")})
     except BaseException as err:  # noqa: BLE001
         out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})

@@ -88,7 +88,8 @@ LATE_TICK_LIMIT = "late_tick_limit:=0.25"
 
 
 def start_node(env, tmp_path: Path, *params: str, name: str = "sim_node") -> Proc:
-    args = [console_script("sim_node"), "--ros-args", "-p", LATE_TICK_LIMIT]
+    args = [console_script("sim_node"), "--ros-args", "-p", LATE_TICK_LIMIT, "-p",
+            f"recording_folder:={tmp_path / 'recordings'}"]
     for p in params:
         args += ["-p", p]
     return Proc(args, env, tmp_path / f"{name}.log")
