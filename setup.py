@@ -20,12 +20,14 @@ INSTALL_REQUIRES = [
     "imageio-ffmpeg==0.8.1",  # ships the ffmpeg binary that encodes the MP4 videos
     "pin==4.1.0",  # Pinocchio: URDF kinematics for the execution pipeline (fluidlab_ros)
     "ruckig==0.19.4",  # jerk-limited smoothing at the control rate
+    "matplotlib==3.11.2",  # the replay report's plots
 ]
 
 # example-robot-data (414 MB of meshes) is only the Panda URDF that tests/test_pipeline.py cross-checks
 # robot_models/ against; it is a test extra, not a runtime dependency.
 # pytest-xdist runs the test files in two processes, overlapping Taichi compilation (README).
-TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0"]
+# mcap: an MCAP reader independent of rosbags, to check the recordings.
+TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0"]
 
 setup(
     name=PACKAGE,
