@@ -54,13 +54,15 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data, ReliabilityPolicy, HistoryPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import JointState, PointCloud2, PointField
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import ColorRGBA, Float64, Float64MultiArray, MultiArrayDimension, String
+from visualization_msgs.msg import Marker, MarkerArray
 from std_srvs.srv import SetBool, Trigger
 
 from fluidlab_msgs.action import Execute, Optimise, Replay
@@ -70,6 +72,7 @@ from fluidlab_msgs.srv import GetTrajectory, ListTrajectories
 from fluidlab_ros.errors import PlanningError
 from fluidlab_ros.frames import se3_to_pose
 from fluidlab_ros.mounting import load_mounting
+from fluidlab_ros.pipeline import command_budgets
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
 from fluidlab_ros.store import StoreError, TrajectoryStore
@@ -127,6 +130,8 @@ class SimNode(Node):
         q_init = list(p("twin_initial_positions", READY_Q.tolist()).value)
         self.cancel_timeout = float(p("cancel_timeout", 0.5).value)
         self.realtime_priority = int(p("realtime_priority", 10).value)
+        self.feedback_gain = float(p("feedback_gain", 2.0).value)
+        self.feedback_max_velocity = float(p("feedback_max_velocity", 0.05).value)
         self.record = bool(p("record", True).value)
         self.recording_folder = Path(p("recording_folder", "recordings").value).expanduser().resolve()
 
@@ -172,6 +177,15 @@ class SimNode(Node):
         self.pub_tracking = self.create_publisher(Float64, "~/tracking_error", 10)
         self.pub_particles = self.create_publisher(PointCloud2, "~/particles", 2)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # for RViz / Foxglove: latched (transient local) so that a viewer started later still gets them
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_markers = self.create_publisher(MarkerArray, "~/scene_markers", latched)
+        self.pub_path = self.create_publisher(PathMsg, "~/planned_path", latched)
+        self.pub_description = self.create_publisher(String, "~/robot_description", latched)
+        import robot_models
+        self.pub_description.publish(String(data=robot_models.urdf_path(self.robot_model).read_text()))
+        self._scene = None  # the fluid worker's scene description (colours, statics, tools)
+        self._state_ticks = 0
         if self.mode == "robot":
             qos = qos_profile_sensor_data if js_qos == "best_effort" else QoSProfile(
                 depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -191,6 +205,7 @@ class SimNode(Node):
         self.create_service(SetBool, "~/arm", self._arm, callback_group=cb)
         self.create_timer(1.0 / state_rate, self._publish_state, callback_group=timers)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=timers)
+        self._tool_robot = None  # the arm with the current task's tool frame (set by ~/execute)
         self._particle_thread = threading.Thread(target=self._particle_loop, daemon=True)
         self._particle_thread.start()
         self.get_logger().info(
@@ -515,6 +530,13 @@ class SimNode(Node):
         pos, rot = fk.tool_positions_rotations(pl.positions)
         from scipy.spatial.transform import Rotation
         stream.planned_tool = np.hstack([pos, Rotation.from_matrix(rot).as_quat()])
+        self._tool_robot = fk
+        path_msg = PathMsg()
+        path_msg.header.frame_id = self.robot.base_frame
+        path_msg.header.stamp = self.get_clock().now().to_msg()
+        path_msg.poses = [_pose_msg(p, self.robot.base_frame, 0)
+                          for p in np.vstack([stream.planned_tool[:-1:10], stream.planned_tool[-1:]])]
+        self.pub_path.publish(path_msg)
         if self.record:
             try:
                 stream.recorder = self._open_recording(g)
@@ -674,6 +696,25 @@ class SimNode(Node):
                                            f"process CAP_SYS_NICE (or rtprio in limits.conf) for fewer late ticks")
         last, prev = np.zeros(self.limits.dof), np.zeros(self.limits.dof)
         clock = Schedule(T, stream.t0)
+        # Position feedback on top of the verified profile: a late command is held by the arm, which then
+        # drifts from the plan by (lateness x velocity). The correction u_k follows gain x (q_plan[k] - q_arm)
+        # but changes by at most delta per command (a ninth of the planning acceleration budget: the planner
+        # keeps 10 % of margin x limit spare, PLAN_FRACTION) and stays within feedback_max_velocity, so the
+        # commands stay within margin x limits; it is ramped out after the plan's last command.
+        a_plan, _ = command_budgets(self.limits, self.control_rate, self.margin)
+        delta = a_plan * T / 9.0
+        corr = np.zeros(self.limits.dof)
+
+        def corrected(k: int) -> np.ndarray:
+            nonlocal corr
+            if self.feedback_gain > 0:
+                q_arm = self._arm_positions()
+                if q_arm is not None:
+                    target = np.clip(self.feedback_gain * (pl.positions[k] - q_arm), -self.feedback_max_velocity,
+                                     self.feedback_max_velocity)
+                    corr = corr + np.clip(target - corr, -delta, delta)
+            return cmds[k] + corr
+
         reason = ""
         try:
             for k in range(len(cmds)):
@@ -695,16 +736,24 @@ class SimNode(Node):
                         reason = "disarmed"
                         break
                 stream.phase = "approach" if k < n_task0 else "task"
-                reason = self._send(stream, cmds[k], now)
+                command = corrected(k)
+                reason = self._send(stream, command, now)
                 if stream.recorder is not None:
-                    self._record(stream, k, cmds[k], fk)
-                prev, last = last, cmds[k]
+                    self._record(stream, k, command, fk)
+                prev, last = last, command
                 stream.index = k + 1
                 if reason:
                     break
                 if self.fluid_twin and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
                     self._fluid_pose(fk, last=(k + fluid_every >= n_task1))
             else:
+                while np.any(corr):  # ramp the correction out: the stream ends with an exact zero
+                    corr = corr - np.clip(corr, -delta, delta)
+                    now, _ = clock.wait()
+                    if self._send(stream, corr.copy(), now):
+                        break
+                    if stream.recorder is not None:
+                        self._record(stream, -1, corr.copy(), fk)
                 stream.outcome = "done"
                 return
             stream.outcome = reason
@@ -773,9 +822,13 @@ class SimNode(Node):
                 msg = fluid[4].get(timeout=0.2)
             except (queue.Empty, OSError, ValueError):
                 continue
+            if msg["kind"] == "ready":
+                self._scene = msg
+                self._publish_markers()
             if msg["kind"] == "particles":
+                colors = self._scene["colors"] if self._scene is not None else None
                 self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
-                                                       self.get_clock().now().to_msg()))
+                                                       self.get_clock().now().to_msg(), colors))
                 stream = self.stream
                 if stream is not None and stream.recorder is not None:
                     from fluidlab_ros.recording import downsample
@@ -805,6 +858,31 @@ class SimNode(Node):
             o = ps.pose.orientation
             o.x, o.y, o.z, o.w = (float(x) for x in pose[3:])
             self.pub_tool.publish(ps)
+        self._state_ticks += 1
+        if self._scene is not None and self._state_ticks % 5 == 0:
+            self._publish_markers()  # the tool moves
+
+    def _publish_markers(self):
+        """Containers and other statics (grey) and the tool (its colour, at the arm's tool pose) as sphere
+        lists of their point samples, in the base frame; ids: statics 0.., tools 100.."""
+        scene = self._scene
+        if scene is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        out = MarkerArray()
+        d = scene["dx"]
+        for i, (name, pts) in enumerate(scene["statics"]):
+            out.markers.append(_marker(i, name, pts[:: max(1, len(pts) // 3000)], (0.72, 0.72, 0.74, 0.35), d,
+                                       self.robot.base_frame, stamp))
+        q = self._arm_positions()
+        tool_pose = None if q is None or self._tool_robot is None else se3_to_pose(self._tool_robot.frame_placement(q))
+        for i, (name, pts, color) in enumerate(scene["tools"]):
+            m = _marker(100 + i, name, pts[:: max(1, len(pts) // 3000)], (*color, 1.0), 0.5 * d,
+                        self.robot.base_frame, stamp)
+            if tool_pose is not None:
+                m.pose = _pose_msg(tool_pose, self.robot.base_frame, 0).pose
+            out.markers.append(m)
+        self.pub_markers.publish(out)
 
     def _publish_diagnostics(self):
         stream = self.stream
@@ -883,17 +961,40 @@ def _pose_msg(pose, frame_id: str, stamp_ns: int) -> PoseStamped:
     return ps
 
 
-def point_cloud(points: np.ndarray, frame_id: str, stamp) -> PointCloud2:
-    """An unordered PointCloud2 of (N, 3) float32 x, y, z (m)."""
+def _marker(mid: int, name: str, points: np.ndarray, rgba, diameter: float, frame_id: str, stamp) -> Marker:
+    from geometry_msgs.msg import Point
+
+    m = Marker()
+    m.header.frame_id, m.header.stamp = frame_id, stamp
+    m.ns, m.id, m.type, m.action = name, mid, Marker.SPHERE_LIST, Marker.ADD
+    m.pose.orientation.w = 1.0
+    m.scale.x = m.scale.y = m.scale.z = float(diameter)
+    m.color = ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]), a=float(rgba[3]))
+    m.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in points]
+    return m
+
+
+def point_cloud(points: np.ndarray, frame_id: str, stamp, colors: np.ndarray | None = None) -> PointCloud2:
+    """An unordered PointCloud2 of (N, 3) float32 x, y, z (m); with colors (N, 3) uint8, also the packed
+    float32 `rgb` field that RViz and Foxglove colour by (0x00RRGGBB reinterpreted as float32, PCL's layout)."""
     pts = np.ascontiguousarray(points, dtype=np.float32)
     msg = PointCloud2()
     msg.header.frame_id = frame_id
     if stamp is not None:
         msg.header.stamp = stamp
     msg.height, msg.width = 1, len(pts)
-    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
-    msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, 12, 12 * len(pts), True
-    msg.data = pts.tobytes()
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    if colors is not None and len(colors) == len(pts):
+        c = np.asarray(colors, dtype=np.uint32)
+        rgb = ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).astype(np.uint32).view(np.float32)
+        data = np.hstack([pts, rgb[:, None]])
+        fields.append(PointField(name="rgb", offset=12, datatype=PointField.FLOAT32, count=1))
+    else:
+        data = pts
+    msg.fields = fields
+    step = 4 * data.shape[1]
+    msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, step, step * len(pts), True
+    msg.data = np.ascontiguousarray(data, dtype=np.float32).tobytes()
     return msg
 
 

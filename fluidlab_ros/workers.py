@@ -64,6 +64,22 @@ def optimise_worker(request: dict, out, stop, folder: str, arch: str = "cpu", pr
         out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})
 
 
+def scene_description(sim) -> dict:
+    """What a viewer needs to draw the scene: per-particle colours (N, 3) uint8 by body material, the
+    statics as point samples in the world frame, each tool's shape as points in its own frame, and colours
+    (0..1). Point samples keep this generic over primitives, containers and meshes."""
+    import numpy as np
+
+    n = sim.positions().shape[0]
+    colors = np.zeros((n, 3), dtype=np.uint8)
+    for h in sim.handles.values():
+        colors[h.slice] = np.round(255 * np.asarray(h.material.color)).astype(np.uint8)
+    dx = sim.scene.dx
+    statics = [(st.name, st.shape.sample(dx).astype(np.float32)) for st in sim.scene.statics]
+    tools = [(spec.name, spec.shape.sample(0.5 * dx).astype(np.float32), tuple(spec.color)) for spec in sim.tools.specs]
+    return {"colors": colors, "statics": statics, "tools": tools, "dx": float(dx)}
+
+
 def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", precision: str = "f32",
                  publish_every: int = 5, nice: int = 10):
     import numpy as np
@@ -81,7 +97,7 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
         sim = task.simulator()
         dt = task.dt
         tool = task.tool_name
-        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0])})
+        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0]), **scene_description(sim)})
         step = 0
         while True:
             try:

@@ -64,8 +64,9 @@ def test_twin_execution_is_recorded_and_replays_to_the_plan(ros_env, client, tmp
 
         counts, times, meta = independent_read(folder)
         sent = int(round(result.duration * 500))
-        assert counts["/sim_node/commands"] == sent
-        assert counts["/sim_node/twin/joint_states"] == sent and counts["/sim_node/measured_joint_states"] == sent
+        n = counts["/sim_node/commands"]  # the plan's, then the feedback correction ramped out
+        assert sent <= n <= sent + 250
+        assert counts["/sim_node/twin/joint_states"] == n and counts["/sim_node/measured_joint_states"] == n
         assert counts["/sim_node/planned_tool_pose"] == sent and counts["/fluidlab/metadata"] == 1
         t = times["/sim_node/commands"]
         assert (len(t) - 1) / (t[-1] - t[0]) == pytest.approx(500.0, rel=0.02)
@@ -76,7 +77,7 @@ def test_twin_execution_is_recorded_and_replays_to_the_plan(ros_env, client, tmp
         assert abs(meta["start_time"] - t[0]) < 0.05  # the first command went out when the metadata says
         # the twin's fluid was recorded too (downsampled), unless its first compile outlasted the motion
         rec = read_recording(folder)
-        assert rec.closed and rec.counts["/sim_node/commands"] == sent
+        assert rec.closed and rec.counts["/sim_node/commands"] == n
         assert all(len(p) <= 2000 for _, p in rec.particles)
 
         # replay through the node
