@@ -66,7 +66,7 @@ def run_once(tmp: Path, fluid: bool, env: dict) -> dict:
         node.send_signal(signal.SIGINT)
         node.wait(30)
         log.close()
-    stats["sent"] = int(round(res.result.duration * 500))
+    stats["sent"] = int(round(res.result.duration * 500))  # the plan's commands (the feedback may add a ramp-out)
     stats["result"] = res.result.message
     return stats
 
@@ -94,11 +94,11 @@ def main():
     lines = [f"# sim_node command stream, 500 Hz, measured by command_monitor in another process "
              f"({datetime.date.today()}, {platform.node()}, {os.cpu_count()} cores, {platform.processor() or platform.machine()})",
              "# trajectory: 10 s stirring (bench_planning.py) from the ready posture, twin mode",
-             f"{'fluid twin':<11} {'sent':>6} {'recv':>6} {'rate Hz':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
+             f"{'fluid twin':<11} {'sent':>6} {'recv':>6} {'rate Hz':>8} {'median':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
              f"{'p99/base':>8} {'peak v':>7} {'peak a':>7} {'peak j':>7}"]
     for fluid, s in rows:
         pk = s["peak_fraction"]
-        lines.append(f"{'on' if fluid else 'off':<11} {s['sent']:>6} {s['count']:>6} {s['rate']:>8.2f} "
+        lines.append(f"{'on' if fluid else 'off':<11} {s['sent']:>6} {s['count']:>6} {s['rate']:>8.2f} {s['rate_median']:>8.2f} "
                      f"{s['gap_p50_ms']:>7.3f} {s['gap_p99_ms']:>7.3f} {s['gap_max_ms']:>7.2f} "
                      f"{s['gap_p99_ms'] / base['gap_p99_ms']:>8.2f} {pk['velocity']:>7.2f} {pk['acceleration']:>7.2f} "
                      f"{pk['jerk']:>7.2f}")

@@ -5,11 +5,12 @@ A recording is a rosbag2 folder `<recordings>/<UTC time>_<trajectory>/` holding 
 
     /sim_node/commands             std_msgs/msg/Float64MultiArray   each command sent (rad/s, controller order)
     /sim_node/measured_joint_states sensor_msgs/msg/JointState      the arm being commanded: the twin in twin
-                                                                    mode, the measured arm in robot mode
-    /sim_node/twin/joint_states    sensor_msgs/msg/JointState       the twin arm, every command
-    /sim_node/planned_joint_states sensor_msgs/msg/JointState       the plan's joint positions at each command
-    /sim_node/planned_tool_pose    geometry_msgs/msg/PoseStamped    the plan's tool pose at each command
-    /sim_node/tool_pose            geometry_msgs/msg/PoseStamped    the measured arm's tool pose, every command
+                                                                    mode (every 5th command), the measured arm
+                                                                    in robot mode (as it arrives)
+    /sim_node/twin/joint_states    sensor_msgs/msg/JointState       the twin arm, every 5th command (100 Hz)
+    /sim_node/planned_joint_states sensor_msgs/msg/JointState       the plan's joint positions, every 5th command
+    /sim_node/planned_tool_pose    geometry_msgs/msg/PoseStamped    the plan's tool pose, every 5th command
+    /sim_node/tool_pose            geometry_msgs/msg/PoseStamped    the measured arm's tool pose, every 5th
     /sim_node/particles            sensor_msgs/msg/PointCloud2      the twin's fluid, at most MAX_POINTS points
     /fluidlab/metadata             std_msgs/msg/String              one JSON document, first message
 

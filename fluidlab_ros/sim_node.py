@@ -80,6 +80,7 @@ from fluidlab_ros.twin import TwinArm
 from fluidlab_ros import workers
 
 MODES = ("twin", "robot")
+STATE_EVERY = 5  # a recording holds every command, and the arm states and tool poses of every 5th
 TARGETS = ("twin", "robot")
 SIZES = ("small", "paper")
 
@@ -102,6 +103,8 @@ class Stream:
     t0: float = 0.0  # time.monotonic() of command 0's deadline
     recorder: object = None  # recording.Recorder, or None
     planned_tool: np.ndarray | None = None  # (K + 1, 7) tool poses of the plan's positions
+    last_msg: object = None  # the last command message sent
+    recorded: int = 0  # commands recorded
 
 
 class SimNode(Node):
@@ -641,8 +644,10 @@ class SimNode(Node):
         """Command k (or a stop-ramp command, k = -1) went out: record it with the arm states and tool poses."""
         rec = stream.recorder
         stamp = time.time_ns()
-        msg = Float64MultiArray(data=command[self.controller_order].tolist())
-        rec.put("/sim_node/commands", msg, stamp)
+        rec.put("/sim_node/commands", stream.last_msg, stamp)
+        stream.recorded += 1
+        if (stream.recorded - 1) % STATE_EVERY:
+            return  # states and poses at control_rate / STATE_EVERY: the stream thread's time is precious
         q, v = self.twin.state()
         names = list(self.robot.joint_names)
         js = JointState(name=names, position=q.tolist(), velocity=v.tolist())
@@ -666,6 +671,7 @@ class SimNode(Node):
         msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
         msg.data = command[self.controller_order].tolist()
         self.pub_commands.publish(msg)
+        stream.last_msg = msg
         if stream.to_robot and self.pub_controller is not None:
             self.pub_controller.publish(msg)
         stream.sent_times.append(now)

@@ -81,10 +81,10 @@ class Proc:
         return json.loads(lines[-1])
 
 
-# CI shares two cores with Taichi compiles in the other test worker: a 20 ms stall of the stream thread
-# (the node's default late_tick_limit, meant for a real-time machine) happens there now and then. The tests
-# allow 0.25 s, and the twin still judges every command that goes out.
-LATE_TICK_LIMIT = "late_tick_limit:=0.25"
+# CI shares two cores with Taichi compiles in the other test worker: a stall of the stream thread longer
+# than the node's default late_tick_limit (20 ms, meant for a real-time machine) happens there now and then,
+# up to a quarter of a second seen. The tests allow 1 s; the twin still judges every command that goes out.
+LATE_TICK_LIMIT = "late_tick_limit:=1.0"
 
 
 def start_node(env, tmp_path: Path, *params: str, name: str = "sim_node") -> Proc:
@@ -106,6 +106,12 @@ def start_monitor(env, tmp_path: Path, topic: str, name: str = "monitor") -> tup
         assert time.monotonic() < deadline, "command_monitor did not start"
         time.sleep(0.1)
     return proc, out
+
+
+# wait_for_server / wait_for_service return once the client has discovered the server; the server may not yet
+# have discovered the client's response reader, and Fast DDS then drops the first response (seen here: a goal
+# never acknowledged). A second of settling after discovery avoids it.
+SETTLE = 1.0
 
 
 class Client:
@@ -136,11 +142,13 @@ class Client:
     def action(self, kind, name: str, timeout: float = 60.0):
         client = ActionClient(self.node, kind, name)
         assert client.wait_for_server(timeout_sec=timeout), f"action server {name} did not appear in {timeout} s"
+        time.sleep(SETTLE)
         return client
 
     def service(self, kind, name: str, timeout: float = 60.0):
         client = self.node.create_client(kind, name)
         assert client.wait_for_service(timeout_sec=timeout), f"service {name} did not appear in {timeout} s"
+        time.sleep(SETTLE)
         return client
 
     def call(self, client, request, timeout: float = 30.0):
