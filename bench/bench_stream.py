@@ -40,7 +40,7 @@ def run_once(tmp: Path, fluid: bool, env: dict) -> dict:
     folder = tmp / "trajectories"
     log = open(tmp / f"node_{fluid}.log", "w")
     node = subprocess.Popen([str(bindir / "sim_node"), "--ros-args", "-p", f"trajectory_folder:={folder}", "-p",
-                             f"fluid_twin:={'true' if fluid else 'false'}"], env=env, stdout=log,
+                             f"fluid_twin:={'true' if fluid else 'false'}", "-p", f"recording_folder:={tmp / 'recordings'}"], env=env, stdout=log,
                             stderr=subprocess.STDOUT)
     ready = tmp / f"mon_{fluid}.ready"
     out = tmp / f"mon_{fluid}.npz"

@@ -35,6 +35,7 @@ kind runs is rejected.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import math
 import multiprocessing as mp
@@ -104,6 +105,8 @@ class Stream:
     recorder: object = None  # recording.Recorder, or None
     planned_tool: np.ndarray | None = None  # (K + 1, 7) tool poses of the plan's positions
     last_msg: object = None  # the last command message sent
+    fk: object = None  # a Robot with the task's tool frame for the stream thread (pinocchio data is per thread)
+    metadata: dict | None = None  # the recording's metadata; the stream thread adds the start time
     recorded: int = 0  # commands recorded
 
 
@@ -530,6 +533,7 @@ class SimNode(Node):
 
         stream = Stream(plan=pl, to_robot=(target == "robot"))
         fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
+        stream.fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)  # the stream thread's own
         pos, rot = fk.tool_positions_rotations(pl.positions)
         from scipy.spatial.transform import Rotation
         stream.planned_tool = np.hstack([pos, Rotation.from_matrix(rot).as_quat()])
@@ -551,10 +555,8 @@ class SimNode(Node):
                 return result
         if self.fluid_twin:
             self._fluid_reset(traj)
-        lead = 0.05  # s from now to the first command: the same instant on both clocks
-        stream.t0, start_wall = time.monotonic() + lead, time.time() + lead
         if stream.recorder is not None:
-            stream.recorder.write_metadata(self._recording_metadata(g, traj, pl, target, start_wall))
+            stream.metadata = self._recording_metadata(g, traj, pl, target)
         self.stream = stream
         self._planning = False
         thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
@@ -613,7 +615,7 @@ class SimNode(Node):
             folder = self.recording_folder / f"{stamp}_{g.trajectory_name}_{n}"
         return Recorder(folder)
 
-    def _recording_metadata(self, g, traj, pl, target: str, start_wall: float) -> dict:
+    def _recording_metadata(self, g, traj, pl, target: str) -> dict:
         from fluidlab_core import __version__
         from fluidlab_ros.recording import sha256_of
 
@@ -632,8 +634,7 @@ class SimNode(Node):
                 "mode": self.mode, "target": target, "speed_scale": scale,
                 "mounting": {"task": m.task, "scene_origin": m.scene_origin.tolist(),
                              "flange_to_tool": m.flange_to_tool.tolist()},
-                "software_version": __version__, "start_time": start_wall,
-                "start_time_iso": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z",
+                "software_version": __version__,
                 "task_start_time": pl.task_start_time, "task_end_time": pl.task_end_time,
                 "plan_times": times.tolist(), "plan_traj_times": [None if np.isnan(v) else float(v) for v in r],
                 "plan_report": json.loads(json.dumps(pl.report.to_dict(), default=float)),
@@ -691,7 +692,7 @@ class SimNode(Node):
         n_task0 = int(round(pl.task_start_time * self.control_rate))
         n_task1 = int(round(pl.task_end_time * self.control_rate))
         fluid_every = max(1, int(round(traj.dt * self.control_rate)))
-        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
+        fk = stream.fk  # built before the thread: parsing a URDF takes tens of ms
         if self.realtime_priority > 0:
             try:  # SCHED_FIFO for this thread only (Linux: pid 0 is the calling thread)
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
@@ -701,6 +702,16 @@ class SimNode(Node):
                     self.get_logger().warn(f"the command stream runs without real-time priority ({err}); give the "
                                            f"process CAP_SYS_NICE (or rtprio in limits.conf) for fewer late ticks")
         last, prev = np.zeros(self.limits.dof), np.zeros(self.limits.dof)
+        # The cyclic garbage collector stops every thread while it runs (tens of ms over a large heap, seen as
+        # late ticks); during the stream, memory is freed by reference counting alone, and collected after.
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        lead = 0.05  # s from now to the first command: the same instant on both clocks
+        stream.t0, start_wall = time.monotonic() + lead, time.time() + lead
+        if stream.recorder is not None:
+            stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
+                "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
+            stream.recorder.write_metadata(stream.metadata)
         clock = Schedule(T, stream.t0)
         # Position feedback on top of the verified profile: a late command is held by the arm, which then
         # drifts from the plan by (lateness x velocity). The correction u_k follows gain x (q_plan[k] - q_arm)
@@ -784,6 +795,8 @@ class SimNode(Node):
             except Exception:  # noqa: BLE001
                 pass
         finally:
+            if gc_was_enabled:
+                gc.enable()
             stream.done.set()
 
     # --- the twin's fluid --------------------------------------------------------------------------------
@@ -794,24 +807,31 @@ class SimNode(Node):
                 self._fluid_quit()
             if self._fluid is None or not self._fluid[2].is_alive():
                 inbox, outbox = self._mp.Queue(), self._mp.Queue()
+                inbox.cancel_join_thread()  # never wait at exit to hand poses to a worker that is gone
+                self._fluid_stop, self._fluid_epoch = self._mp.Event(), self._mp.Value("i", 0)
                 proc = self._mp.Process(target=workers.fluid_worker, name="fluidlab-twin-fluid", daemon=True,
-                                        args=(traj.task, size, inbox, outbox, self.arch, self.precision))
+                                        args=(traj.task, size, inbox, outbox, self.arch, self.precision),
+                                        kwargs={"stop": self._fluid_stop, "epoch": self._fluid_epoch})
                 proc.start()
                 self._fluid = (traj.task, size, proc, inbox, outbox)
                 self.get_logger().info(f"started the twin's fluid ({traj.task}, {size}) in process {proc.pid}")
-            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist()})
+            with self._fluid_epoch.get_lock():
+                self._fluid_epoch.value += 1
+            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(),
+                                "epoch": self._fluid_epoch.value})
 
     def _fluid_pose(self, fk: Robot, last: bool):
         q = self._arm_positions()
         if q is None or self._fluid is None:
             return
-        self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(), "last": last})
+        self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(), "last": last,
+                            "epoch": self._fluid_epoch.value})
 
     def _fluid_quit(self):
         if self._fluid is None:
             return
         _, _, proc, inbox, _ = self._fluid
-        inbox.put({"kind": "quit"})
+        self._fluid_stop.set()
         proc.join(2.0)
         if proc.is_alive():
             proc.terminate()

@@ -81,9 +81,11 @@ def scene_description(sim) -> dict:
 
 
 def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", precision: str = "f32",
-                 publish_every: int = 5, nice: int = 10):
+                 publish_every: int = 5, nice: int = 10, stop=None, epoch=None):
+    """stop (an Event) ends the worker at once; epoch (a shared integer) is raised by the node before each
+    reset, and poses of an older epoch are skipped, so a worker that fell behind real time drops the rest of
+    a finished execution instead of simulating it before the next one."""
     import numpy as np
-    from scipy.spatial.transform import Rotation
 
     try:
         os.nice(nice)  # the command stream in the node comes first
@@ -99,24 +101,24 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
         tool = task.tool_name
         out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0]), **scene_description(sim)})
         step = 0
-        while True:
+        from fluidlab_ros.replay import tracking_twist
+
+        while stop is None or not stop.is_set():
             try:
-                msg = inbox.get(timeout=1.0)
+                msg = inbox.get(timeout=0.2)
             except queue.Empty:
                 continue
             if msg is None or msg.get("kind") == "quit":
                 return
+            if epoch is not None and msg.get("epoch", epoch.value) < epoch.value:
+                continue
             if msg["kind"] == "reset":
                 pos = msg.get("tool_position")
                 task.reset(sim, tool_position=None if pos is None else np.asarray(pos, dtype=float))
                 step = 0
                 out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": 0})
             elif msg["kind"] == "pose":
-                target = np.asarray(msg["pose"], dtype=float)
-                cur = sim.tool_pose(tool)
-                v = (target[:3] - cur[:3]) / dt
-                w = (Rotation.from_quat(target[3:]) * Rotation.from_quat(cur[3:]).inv()).as_rotvec() / dt
-                sim.step(np.concatenate([v, w]))
+                sim.step(tracking_twist(sim.tool_pose(tool), np.asarray(msg["pose"], dtype=float), dt))
                 step += 1
                 if step % publish_every == 0 or msg.get("last"):
                     out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step})
