@@ -192,7 +192,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
             raise InvalidInputError(str(err)) from None
     lim = robot.limits
     try:
-        n_hold = ticks_per_command(control_rate, lim.check_period)
+        ticks_per_command(control_rate, lim.check_period)  # refuses rates that do not divide 1 kHz
     except ValueError as err:
         raise InvalidInputError(str(err)) from None
     period = 1.0 / control_rate

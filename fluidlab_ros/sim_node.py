@@ -61,9 +61,9 @@ from rclpy.signals import SignalHandlerOptions
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
-from sensor_msgs.msg import JointState, PointCloud2, PointField
-from std_msgs.msg import ColorRGBA, Float64, Float64MultiArray, MultiArrayDimension, String
-from visualization_msgs.msg import Marker, MarkerArray
+from sensor_msgs.msg import JointState, PointCloud2
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from visualization_msgs.msg import MarkerArray
 from std_srvs.srv import SetBool, Trigger
 
 from fluidlab_msgs.action import Execute, Optimise, Replay
@@ -72,7 +72,9 @@ from fluidlab_msgs.srv import GetTrajectory, ListTrajectories
 
 from fluidlab_ros.errors import PlanningError
 from fluidlab_ros.frames import se3_to_pose
+from fluidlab_ros.messages import marker, point_cloud, pose_msg
 from fluidlab_ros.mounting import load_mounting
+from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.pipeline import command_budgets
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
@@ -541,7 +543,7 @@ class SimNode(Node):
         path_msg = PathMsg()
         path_msg.header.frame_id = self.robot.base_frame
         path_msg.header.stamp = self.get_clock().now().to_msg()
-        path_msg.poses = [_pose_msg(p, self.robot.base_frame, 0)
+        path_msg.poses = [pose_msg(p, self.robot.base_frame, 0)
                           for p in np.vstack([stream.planned_tool[:-1:10], stream.planned_tool[-1:]])]
         self.pub_path.publish(path_msg)
         if self.record:
@@ -660,10 +662,10 @@ class SimNode(Node):
             pj = JointState(name=names, position=stream.plan.positions[k].tolist())
             pj.header.stamp = js.header.stamp
             rec.put("/sim_node/planned_joint_states", pj, stamp)
-            rec.put("/sim_node/planned_tool_pose", _pose_msg(stream.planned_tool[k], self.robot.base_frame, stamp), stamp)
+            rec.put("/sim_node/planned_tool_pose", pose_msg(stream.planned_tool[k], self.robot.base_frame, stamp), stamp)
         arm_q = self._arm_positions()
         if arm_q is not None:
-            rec.put("/sim_node/tool_pose", _pose_msg(se3_to_pose(fk.frame_placement(arm_q)), self.robot.base_frame,
+            rec.put("/sim_node/tool_pose", pose_msg(se3_to_pose(fk.frame_placement(arm_q)), self.robot.base_frame,
                                                      stamp), stamp)
 
     def _send(self, stream: Stream, command: np.ndarray, now: float) -> str:
@@ -680,7 +682,7 @@ class SimNode(Node):
         if reflex is not None:
             self.last_reflex = reflex.message()
             stream.reflex = reflex.message()
-            return f"the twin arm stopped with a reflex"
+            return "the twin arm stopped with a reflex"
         return ""
 
     def _stream_loop(self, stream: Stream, traj):
@@ -898,15 +900,15 @@ class SimNode(Node):
         out = MarkerArray()
         d = scene["dx"]
         for i, (name, pts) in enumerate(scene["statics"]):
-            out.markers.append(_marker(i, name, pts[:: max(1, len(pts) // 3000)], (0.72, 0.72, 0.74, 0.35), d,
+            out.markers.append(marker(i, name, pts[:: max(1, len(pts) // 3000)], (0.72, 0.72, 0.74, 0.35), d,
                                        self.robot.base_frame, stamp))
         q = self._arm_positions()
         tool_pose = None if q is None or self._tool_robot is None else se3_to_pose(self._tool_robot.frame_placement(q))
         for i, (name, pts, color) in enumerate(scene["tools"]):
-            m = _marker(100 + i, name, pts[:: max(1, len(pts) // 3000)], (*color, 1.0), 0.5 * d,
+            m = marker(100 + i, name, pts[:: max(1, len(pts) // 3000)], (*color, 1.0), 0.5 * d,
                         self.robot.base_frame, stamp)
             if tool_pose is not None:
-                m.pose = _pose_msg(tool_pose, self.robot.base_frame, 0).pose
+                m.pose = pose_msg(tool_pose, self.robot.base_frame, 0).pose
             out.markers.append(m)
         self.pub_markers.publish(out)
 
@@ -935,93 +937,6 @@ class SimNode(Node):
             stream.done.wait(timeout)
         with self._fluid_lock:
             self._fluid_quit()
-
-
-class Schedule:
-    """Absolute deadlines t0 + k T on a fixed timeline, with a minimum gap between ticks.
-
-    wait() sleeps until the next deadline and returns (now, lateness against the timeline). After a stall,
-    the following ticks come every `min_gap` (T / 2 when a command spans at least two 1 ms arm ticks) until
-    the timeline is reached again. So commands are never bunched (at most two reach one 1 ms arm tick: the
-    one-lost-command case the planner budgets for), and the time each command is held averages out: the arm
-    held the stalled command too long, then holds the next ones shorter, and comes back onto the planned
-    positions instead of drifting by (stall x velocity) per stall."""
-
-    def __init__(self, period: float, t0: float, arm_tick: float = 1e-3):
-        self.period, self.t0, self.k = period, t0, 0
-        self.min_gap = period / 2 if period >= 2 * arm_tick - 1e-12 else period
-        self.last: float | None = None
-        self.late_ticks, self.max_late = 0, 0.0
-
-    def wait(self) -> tuple[float, float]:
-        on_time = self.t0 + self.k * self.period
-        deadline = on_time if self.last is None else max(on_time, self.last + self.min_gap)
-        _sleep_until(deadline)
-        now = time.monotonic()
-        late = now - on_time
-        if late > self.period / 2:
-            self.late_ticks += 1
-        self.max_late = max(self.max_late, late)
-        self.k += 1
-        self.last = now
-        return now, late
-
-
-def _sleep_until(deadline: float):
-    """Sleep to within 0.3 ms of the deadline, then spin (time.sleep overshoots by up to a tick of the OS)."""
-    while True:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return
-        if left > 0.0006:
-            time.sleep(left - 0.0004)
-
-
-def _pose_msg(pose, frame_id: str, stamp_ns: int) -> PoseStamped:
-    ps = PoseStamped()
-    ps.header.frame_id = frame_id
-    ps.header.stamp.sec, ps.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(x) for x in pose[:3])
-    o = ps.pose.orientation
-    o.x, o.y, o.z, o.w = (float(x) for x in pose[3:])
-    return ps
-
-
-def _marker(mid: int, name: str, points: np.ndarray, rgba, diameter: float, frame_id: str, stamp) -> Marker:
-    from geometry_msgs.msg import Point
-
-    m = Marker()
-    m.header.frame_id, m.header.stamp = frame_id, stamp
-    m.ns, m.id, m.type, m.action = name, mid, Marker.SPHERE_LIST, Marker.ADD
-    m.pose.orientation.w = 1.0
-    m.scale.x = m.scale.y = m.scale.z = float(diameter)
-    m.color = ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]), a=float(rgba[3]))
-    m.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in points]
-    return m
-
-
-def point_cloud(points: np.ndarray, frame_id: str, stamp, colors: np.ndarray | None = None) -> PointCloud2:
-    """An unordered PointCloud2 of (N, 3) float32 x, y, z (m); with colors (N, 3) uint8, also the packed
-    float32 `rgb` field that RViz and Foxglove colour by (0x00RRGGBB reinterpreted as float32, PCL's layout)."""
-    pts = np.ascontiguousarray(points, dtype=np.float32)
-    msg = PointCloud2()
-    msg.header.frame_id = frame_id
-    if stamp is not None:
-        msg.header.stamp = stamp
-    msg.height, msg.width = 1, len(pts)
-    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
-    if colors is not None and len(colors) == len(pts):
-        c = np.asarray(colors, dtype=np.uint32)
-        rgb = ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).astype(np.uint32).view(np.float32)
-        data = np.hstack([pts, rgb[:, None]])
-        fields.append(PointField(name="rgb", offset=12, datatype=PointField.FLOAT32, count=1))
-    else:
-        data = pts
-    msg.fields = fields
-    step = 4 * data.shape[1]
-    msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, step, step * len(pts), True
-    msg.data = np.ascontiguousarray(data, dtype=np.float32).tobytes()
-    return msg
 
 
 def main(args=None):

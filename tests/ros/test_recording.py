@@ -16,7 +16,6 @@ import json
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -115,3 +114,45 @@ def test_twin_execution_is_recorded_and_replays_to_the_plan(ros_env, client, tmp
     late = replay(folder, tmp_path / "late", "delay=0.3", render=False)
     assert late["tool_path_error_task_max"] > max(2 * report["tool_path_error_task_max"], 5e-3)
     assert late["final_particle_displacement_mean"] > 2 * report["final_particle_displacement_mean"]
+
+
+def test_a_killed_recorder_leaves_a_readable_bag_and_bad_bags_are_named(ros_env, tmp_path):
+    script = str(ROOT / "tests" / "ros" / "crash_recorder.py")
+    killed = tmp_path / "killed"
+    out = subprocess.run([sys.executable, script, str(killed), "--seconds", "1.5"], capture_output=True, text=True,
+                         env=ros_env, timeout=120)
+    assert out.returncode == -9, out.stderr
+    written = int(out.stdout.split()[0])
+    assert not (killed / "metadata.yaml").exists()
+    rec = read_recording(killed)
+    assert not rec.closed and rec.metadata["trajectory_name"] == "crash_test"
+    n = rec.counts["/sim_node/commands"]
+    # at most the last flush period (and the last moments) is lost
+    assert written - (FLUSH_PERIOD + 0.3) * 500 <= n <= written, (n, written)
+    np.testing.assert_allclose(rec.commands[1][:, 0], 0.001 * np.arange(n))
+    fixed = recover(killed)
+    again = read_recording(fixed)
+    assert again.closed and again.counts["/sim_node/commands"] == n
+
+    closed = tmp_path / "closed"
+    subprocess.run([sys.executable, script, str(closed), "--seconds", "0.5", "--close"], check=True, env=ros_env,
+                   timeout=120, capture_output=True)
+    assert read_recording(closed).closed
+    truncated = tmp_path / "truncated"
+    shutil.copytree(closed, truncated)
+    (mcap_file,) = truncated.glob("*.mcap")
+    data = mcap_file.read_bytes()
+    mcap_file.write_bytes(data[: len(data) // 2])
+    with pytest.raises(RecordingError, match="cannot be read"):
+        read_recording(truncated)
+    garbage = tmp_path / "garbage"
+    shutil.copytree(closed, garbage)
+    (mcap_file,) = garbage.glob("*.mcap")
+    mcap_file.write_bytes(b"\x00" * 4096)
+    with pytest.raises(RecordingError):
+        read_recording(garbage)
+    with pytest.raises(RecordingError, match="no recording folder"):
+        read_recording(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(RecordingError, match="no .mcap file"):
+        read_recording(tmp_path / "empty")

@@ -34,7 +34,6 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from fluidlab_core.trajectory import Trajectory  # noqa: E402
 from fluidlab_ros.limits import JointLimits  # noqa: E402
-from fluidlab_ros.monitor import stream_stats  # noqa: E402
 from fluidlab_ros.robot import READY_Q  # noqa: E402
 
 LIM = JointLimits.load("fr3")
