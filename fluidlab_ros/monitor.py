@@ -22,6 +22,16 @@ import time
 import numpy as np
 
 
+def wait_quiet(received: list, quiet: float = 0.5):
+    """Return once `received` (a list a subscription appends to) has not grown for `quiet` s: a subscriber on
+    a loaded machine may still be behind the stream when it is asked to stop."""
+    while True:
+        n = len(received)
+        time.sleep(quiet)
+        if len(received) == n:
+            return
+
+
 def stream_stats(times: np.ndarray, commands: np.ndarray, rate: float, limits) -> dict:
     out = {"count": int(len(times))}
     if len(times) >= 2:
@@ -79,12 +89,7 @@ def main(argv=None):
     if args.ready_file:
         open(args.ready_file, "w").close()
     stop.wait()
-    # drain: a loaded machine may leave the subscriber behind the stream; stop once it has been quiet 0.5 s
-    while True:
-        n = len(times)
-        time.sleep(0.5)
-        if len(times) == n:
-            break
+    wait_quiet(times)
     rclpy.shutdown()
     spin.join(2.0)
     limits = JointLimits.load(args.robot)

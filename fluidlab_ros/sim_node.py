@@ -101,7 +101,6 @@ class Stream:
     phase: str = "approach"
     late_ticks: int = 0  # ticks later than half a period
     max_late: float = 0.0  # s
-    sent_times: list = field(default_factory=list)
     done: threading.Event = field(default_factory=threading.Event)
     t0: float = 0.0  # time.monotonic() of command 0's deadline
     recorder: object = None  # recording.Recorder, or None
@@ -166,6 +165,7 @@ class SimNode(Node):
         self.armed = False
         self.stream: Stream | None = None
         self.optimising = False
+        self._planning = False  # an execute goal is between acceptance and its stream
         self.measured_q: np.ndarray | None = None
         self.measured_v: np.ndarray | None = None
         self.measured_time = -math.inf
@@ -356,48 +356,63 @@ class SimNode(Node):
             self.get_logger().info(f"optimising {request['task']} ({request['size']}) with {request['method']}, "
                                    f"budget {request['budget']}, seed {request['seed']} in process {proc.pid}")
             t0 = time.monotonic()
-            cancel_at = None
-            while True:
-                if goal_handle.is_cancel_requested and cancel_at is None:
-                    stop.set()
-                    cancel_at = time.monotonic()
-                if cancel_at is not None and (not proc.is_alive() or time.monotonic() - cancel_at > self.cancel_timeout):
-                    if proc.is_alive():
-                        proc.terminate()  # a simulation step does not look at the stop event
-                    proc.join(2.0)
-                    result.message = f"cancelled after {time.monotonic() - t0:.1f} s; nothing saved"
-                    goal_handle.canceled()
-                    return result
-                try:
-                    msg = out.get(timeout=0.05)
-                except queue.Empty:
-                    if not proc.is_alive() and out.empty():
-                        result.message = f"the optimiser process ended unexpectedly (exit code {proc.exitcode})"
-                        goal_handle.abort()
-                        return result
-                    continue
-                if msg["kind"] == "feedback":
-                    fb = Optimise.Feedback(iteration=msg["iteration"], loss=msg["loss"],
-                                           best_loss=msg["best_loss"], elapsed=time.monotonic() - t0)
-                    goal_handle.publish_feedback(fb)
-                elif msg["kind"] == "result":
-                    proc.join(5.0)
-                    result.trajectory_name, result.final_loss = msg["name"], msg["final_loss"]
-                    result.message = (f"saved {msg['path']} after {msg['iterations']} iterations in "
-                                      f"{time.monotonic() - t0:.1f} s")
-                    self.get_logger().info(result.message)
-                    goal_handle.succeed()
-                    return result
-                elif msg["kind"] == "error":
-                    proc.join(5.0)
-                    result.message = f"optimisation failed: {msg['message']}"
-                    self.get_logger().error(result.message + "\n" + msg.get("traceback", ""))
-                    goal_handle.abort()
-                    return result
-                elif msg["kind"] == "cancelled":
-                    continue  # handled with the cancel request above
+
+            def feedback(msg):
+                goal_handle.publish_feedback(Optimise.Feedback(iteration=msg["iteration"], loss=msg["loss"],
+                                                               best_loss=msg["best_loss"],
+                                                               elapsed=time.monotonic() - t0))
+
+            outcome, msg = self._pump(goal_handle, proc, out, stop, feedback)
+            if outcome == "result":
+                result.trajectory_name, result.final_loss = msg["name"], msg["final_loss"]
+                result.message = (f"saved {msg['path']} after {msg['iterations']} iterations in "
+                                  f"{time.monotonic() - t0:.1f} s")
+                self.get_logger().info(result.message)
+                goal_handle.succeed()
+            elif outcome == "cancelled":
+                result.message = f"cancelled after {time.monotonic() - t0:.1f} s; nothing saved"
+                goal_handle.canceled()
+            else:
+                result.message = f"optimisation failed: {msg}"
+                self.get_logger().error(result.message)
+                goal_handle.abort()
+            return result
         finally:
             self.optimising = False
+
+    def _pump(self, goal_handle, proc, out, stop, on_feedback):
+        """Relay a worker process's messages to its goal until it ends. Returns ("result", message),
+        ("cancelled", None) or ("failed", reason). On cancel, `stop` (an Event the worker reads between
+        iterations) is set, and the process is terminated if it has not ended within cancel_timeout (a
+        simulation step does not look at it)."""
+        cancel_at = None
+        while True:
+            if goal_handle.is_cancel_requested and cancel_at is None:
+                if stop is not None:
+                    stop.set()
+                cancel_at = time.monotonic()
+            if cancel_at is not None and (stop is None or not proc.is_alive()
+                                          or time.monotonic() - cancel_at > self.cancel_timeout):
+                if proc.is_alive():
+                    proc.terminate()
+                proc.join(2.0)
+                return "cancelled", None
+            try:
+                msg = out.get(timeout=0.05)
+            except queue.Empty:
+                if not proc.is_alive() and out.empty():
+                    return "failed", f"the worker process ended unexpectedly (exit code {proc.exitcode})"
+                continue
+            if msg["kind"] == "feedback":
+                on_feedback(msg)
+            elif msg["kind"] == "result":
+                proc.join(5.0)
+                return "result", msg
+            elif msg["kind"] == "error":
+                proc.join(5.0)
+                self.get_logger().error(msg["message"] + "\n" + msg.get("traceback", ""))
+                return "failed", msg["message"]
+            # "cancelled": the worker saw the stop event; the cancel branch above ends the goal
 
     # --- replay ------------------------------------------------------------------------------------------
     def _replay_goal(self, goal):
@@ -430,44 +445,31 @@ class SimNode(Node):
                                 args=(str(path), str(out_dir), g.disturbance, out, self.arch, self.precision))
         proc.start()
         try:
-            while True:
-                if goal_handle.is_cancel_requested:
-                    proc.terminate()
-                    proc.join(2.0)
-                    result.message = "cancelled"
-                    goal_handle.canceled()
-                    return result
-                try:
-                    msg = out.get(timeout=0.1)
-                except queue.Empty:
-                    if not proc.is_alive() and out.empty():
-                        result.message = f"the replay process ended unexpectedly (exit code {proc.exitcode})"
-                        goal_handle.abort()
-                        return result
-                    continue
-                if msg["kind"] == "feedback":
-                    goal_handle.publish_feedback(Replay.Feedback(phase=msg["phase"], progress=msg["progress"]))
-                elif msg["kind"] == "result":
-                    rep = msg["report"]
-                    result.success, result.report_path = True, msg["report_path"]
-                    result.loss_planned, result.loss_replayed = rep["loss_planned"], rep["loss_replayed"]
-                    result.tool_path_error = rep["tool_path_error_task_max"]
-                    result.message = (f"loss planned {rep['loss_planned']:.6g}, replayed {rep['loss_replayed']:.6g}; "
-                                      f"tool path error {rep['tool_path_error_task_max'] * 1e3:.3g} mm"
-                                      + ("" if rep["closed"] else "; the recording was never closed (crash?)"))
-                    goal_handle.succeed()
-                    return result
-                else:
-                    result.message = f"replay failed: {msg['message']}"
-                    goal_handle.abort()
-                    return result
+            outcome, msg = self._pump(goal_handle, proc, out, None, lambda m: goal_handle.publish_feedback(
+                Replay.Feedback(phase=m["phase"], progress=m["progress"])))
+            if outcome == "result":
+                rep = msg["report"]
+                result.success, result.report_path = True, msg["report_path"]
+                result.loss_planned, result.loss_replayed = rep["loss_planned"], rep["loss_replayed"]
+                result.tool_path_error = rep["tool_path_error_task_max"]
+                result.message = (f"loss planned {rep['loss_planned']:.6g}, replayed {rep['loss_replayed']:.6g}; "
+                                  f"tool path error {rep['tool_path_error_task_max'] * 1e3:.3g} mm"
+                                  + ("" if rep["closed"] else "; the recording was never closed (crash?)"))
+                goal_handle.succeed()
+            elif outcome == "cancelled":
+                result.message = "cancelled"
+                goal_handle.canceled()
+            else:
+                result.message = f"replay failed: {msg}"
+                goal_handle.abort()
+            return result
         finally:
             proc.join(5.0)
             self.replaying = False
 
     # --- execute -----------------------------------------------------------------------------------------
     def _execute_goal(self, goal):
-        if self.stream is not None or getattr(self, "_planning", False):
+        if self.stream is not None or self._planning:
             self.get_logger().warn("rejected an execute goal: another one is running")
             return GoalResponse.REJECT
         self._planning = True
@@ -677,7 +679,6 @@ class SimNode(Node):
         stream.last_msg = msg
         if stream.to_robot and self.pub_controller is not None:
             self.pub_controller.publish(msg)
-        stream.sent_times.append(now)
         reflex = self.twin.command(command, now)
         if reflex is not None:
             self.last_reflex = reflex.message()

@@ -13,6 +13,8 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from fluidlab_ros.monitor import wait_quiet
+
 READY_Q = [0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4]
 
 
@@ -62,11 +64,7 @@ def main():
     spin = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
     spin.start()
     stop.wait()
-    while True:  # drain what is still on its way
-        n = len(cmds)
-        time.sleep(0.5)
-        if len(cmds) == n:
-            break
+    wait_quiet(cmds)  # what is still on its way
     rclpy.shutdown()
     spin.join(2.0)
     np.savez(args.out, times=np.array(times), commands=np.array(cmds, dtype=float) if cmds else np.zeros((0, 7)))
