@@ -944,6 +944,17 @@ def main(args=None):
     # The stream thread must get the GIL back within a fraction of a control period when its deadline
     # comes; CPython's default switch interval (5 ms) let executor threads hold it for up to 2.5 periods.
     sys.setswitchinterval(2e-4)
+    from rclpy.utilities import remove_ros_args
+
+    argv = sys.argv if args is None else ["sim_node", *args]
+    own = remove_ros_args(argv)[1:]  # what is left outside --ros-args ... (parameters go inside: -p name:=value)
+    if own and own[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0
+    if own:
+        print(f"sim_node: unknown arguments {own}; set parameters with --ros-args -p name:=value (sim_node --help)",
+              file=sys.stderr)
+        return 2
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

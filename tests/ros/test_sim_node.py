@@ -300,3 +300,14 @@ def test_robot_mode_needs_arming_and_a_joint_state_gap_stops_the_arm(ros_env, cl
     # the node noticed the gap after joint_state_timeout (0.1 s) and ramped to rest (under 2 s at these speeds)
     assert times[-1] - lost_at < 0.1 + 0.05 + 2.0, times[-1] - lost_at
     assert_within_limits(commands)
+
+
+def test_sim_node_help_and_unknown_arguments(ros_env):
+    import subprocess
+
+    out = subprocess.run([console_script("sim_node"), "--help"], capture_output=True, text=True, timeout=60,
+                         env=ros_env)
+    assert out.returncode == 0 and "~/execute" in out.stdout and "Parameters" not in out.stderr
+    out = subprocess.run([console_script("sim_node"), "--bogus"], capture_output=True, text=True, timeout=60,
+                         env=ros_env)
+    assert out.returncode == 2 and "unknown arguments ['--bogus']" in out.stderr
