@@ -183,14 +183,19 @@ class Trajectory:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no trajectory file at {path}")
+        return cls.loads(path.read_bytes(), str(path))
+
+    @classmethod
+    def loads(cls, data: bytes | str, source: str = "<document>") -> "Trajectory":
+        """A trajectory from its JSON text (`source` names it in error messages)."""
         try:
-            doc = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise TrajectoryError(f"{path} is not valid JSON: {err}") from None
+            doc = json.loads(data)
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise TrajectoryError(f"{source} is not valid JSON: {err}") from None
         try:
             return cls.from_dict(doc)
         except TrajectoryError as err:
-            raise TrajectoryError(f"{path}: {err}") from None
+            raise TrajectoryError(f"{source}: {err}") from None
 
 
 def path_for(root: str | os.PathLike, task: str, name: str) -> Path:

@@ -27,7 +27,6 @@ scanning the MCAP records that made it to disk (`read_recording` does this by it
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import queue
 import threading
@@ -60,10 +59,6 @@ def _typestore():
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_JAZZY)
-
-
-def sha256_of(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 class Recorder:

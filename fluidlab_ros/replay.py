@@ -75,11 +75,6 @@ def _unique(times, values):
     return times[keep], values[keep]
 
 
-class _Rollout:
-    def __init__(self, name, task, sim):
-        self.name, self.task, self.sim = name, task, sim
-
-
 def _drive(task, sim, wall_poses: np.ndarray, dt: float, step_of_k: np.ndarray, horizon: int, progress=None):
     """Reset, then step the simulator to follow wall_poses[j] (j = 0..J); evaluate loss term k at step
     step_of_k[k-1]. Returns (loss, per-k loss values, tool poses of the sim, final particle positions)."""
@@ -141,12 +136,12 @@ def replay(path, out_dir, disturbance: dict | str | None = None, progress=None, 
     t_of_k = np.interp(np.arange(1, N + 1) * traj.dt, r_seg, t_seg)  # wall time of trajectory step k
     step_of_k = np.clip(np.round((t_of_k - t_a) / dt), 1, J).astype(int)
 
-    def tool_poses(times, qs):
+    def tool_poses(qs):
         pos, rot = robot.tool_positions_rotations(qs)
         return np.hstack([pos, Rotation.from_matrix(rot).as_quat()])
 
-    pose_m = tool_poses(t_m, q_m)
-    pose_p = tool_poses(t_p, q_p)
+    pose_m = tool_poses(q_m)
+    pose_p = tool_poses(q_p)
     sim = task.simulator()
     results = {}
     finals = {}

@@ -193,6 +193,8 @@ class SimNode(Node):
         import robot_models
         self.pub_description.publish(String(data=robot_models.urdf_path(self.robot_model).read_text()))
         self._scene = None  # the fluid worker's scene description (colours, statics, tools)
+        self._markers: MarkerArray | None = None  # built from it once; the tool markers move
+        self._marker_pose = np.zeros(7)
         self._state_ticks = 0
         if self.mode == "robot":
             qos = qos_profile_sensor_data if js_qos == "best_effort" else QoSProfile(
@@ -213,7 +215,7 @@ class SimNode(Node):
         self.create_service(SetBool, "~/arm", self._arm, callback_group=cb)
         self.create_timer(1.0 / state_rate, self._publish_state, callback_group=timers)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=timers)
-        self._tool_robot = None  # the arm with the current task's tool frame (set by ~/execute)
+        self._state_robot = None  # the arm with the last executed task's tool frame, for the state timer
         self._particle_thread = threading.Thread(target=self._particle_loop, daemon=True)
         self._particle_thread.start()
         self.get_logger().info(
@@ -262,11 +264,10 @@ class SimNode(Node):
 
     def _get(self, request, response):
         try:
-            path = self.store.find(request.name)
-            traj = self.store.load(request.name)
-            response.info = self._info_msg(self.store.info(path, traj))
-            response.document = path.read_text()
-            response.success, response.message = True, str(path)
+            loaded = self.store.read(request.name)
+            response.info = self._info_msg(self.store.info(loaded.path, loaded.trajectory))
+            response.document = loaded.data.decode()
+            response.success, response.message = True, str(loaded.path)
         except StoreError as err:
             response.success, response.message = False, str(err)
         return response
@@ -309,12 +310,16 @@ class SimNode(Node):
         return response
 
     # --- optimise ----------------------------------------------------------------------------------------
-    def _optimise_goal(self, goal):
-        if self.optimising:
-            self.get_logger().warn("rejected an optimise goal: another optimisation is running")
+    def _claim(self, flag: str, what: str) -> GoalResponse:
+        """Accept a goal if no other of its kind runs (the attribute `flag` says), and mark that one runs."""
+        if getattr(self, flag):
+            self.get_logger().warn(f"rejected a {what} goal: another one is running")
             return GoalResponse.REJECT
-        self.optimising = True
+        setattr(self, flag, True)
         return GoalResponse.ACCEPT
+
+    def _optimise_goal(self, goal):
+        return self._claim("optimising", "optimise")
 
     def _check_optimise(self, g) -> dict:
         from fluidlab_core import tasks
@@ -416,11 +421,7 @@ class SimNode(Node):
 
     # --- replay ------------------------------------------------------------------------------------------
     def _replay_goal(self, goal):
-        if self.replaying:
-            self.get_logger().warn("rejected a replay goal: another replay is running")
-            return GoalResponse.REJECT
-        self.replaying = True
-        return GoalResponse.ACCEPT
+        return self._claim("replaying", "replay")
 
     def _replay(self, goal_handle):
         from fluidlab_ros.replay import parse_disturbance
@@ -493,7 +494,8 @@ class SimNode(Node):
         scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
         if not (0 < scale <= 1):
             raise ValueError(f"speed_scale must be in (0, 1] (0 means 1), got {g.speed_scale}")
-        traj = self.store.load(g.trajectory_name)
+        loaded = self.store.read(g.trajectory_name)
+        traj = loaded.trajectory
         if scale != 1.0:  # the same poses, slower: every twist times s, every step dt / s
             traj = dataclasses.replace(traj, dt=traj.dt / scale, twists=traj.twists * scale)
         if self.twin.reflex is not None:
@@ -504,18 +506,21 @@ class SimNode(Node):
             raise ValueError("no measured joint positions yet")
         if target == "robot":
             self.twin.reset(q_start, time.monotonic())  # the twin mirrors the arm it shadows
-        mounting = load_mounting(traj.task) if traj.task else None
+        try:
+            mounting = load_mounting(traj.task)
+        except KeyError as err:
+            raise ValueError(str(err.args[0])) from None
         pl = plan(traj, self.robot_model, mounting, control_rate=self.control_rate, margin=self.margin,
                   q_start=q_start, max_path_error=self.max_path_error,
                   max_orientation_error=self.max_orientation_error)
-        return traj, pl, target
+        return loaded, traj, mounting, pl, target
 
     def _execute(self, goal_handle):
         g = goal_handle.request
         result = Execute.Result()
         goal_handle.publish_feedback(Execute.Feedback(progress=0.0, tracking_error=0.0, phase="planning"))
         try:
-            traj, pl, target = self._prepare(g)
+            loaded, traj, mounting, pl, target = self._prepare(g)
         except (ValueError, StoreError, PlanningError) as err:
             self._planning = False
             result.success, result.message = False, str(err)
@@ -536,12 +541,12 @@ class SimNode(Node):
             return result
 
         stream = Stream(plan=pl, to_robot=(target == "robot"))
-        fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)
-        stream.fk = Robot(self.robot_model, load_mounting(traj.task).flange_to_tool)  # the stream thread's own
+        fk = Robot(self.robot_model, mounting.flange_to_tool)
+        stream.fk = Robot(self.robot_model, mounting.flange_to_tool)  # the stream thread's own (pinocchio data)
         pos, rot = fk.tool_positions_rotations(pl.positions)
         from scipy.spatial.transform import Rotation
         stream.planned_tool = np.hstack([pos, Rotation.from_matrix(rot).as_quat()])
-        self._tool_robot = fk
+        self._state_robot = Robot(self.robot_model, mounting.flange_to_tool)  # the state timer's own
         path_msg = PathMsg()
         path_msg.header.frame_id = self.robot.base_frame
         path_msg.header.stamp = self.get_clock().now().to_msg()
@@ -560,7 +565,7 @@ class SimNode(Node):
         if self.fluid_twin:
             self._fluid_reset(traj)
         if stream.recorder is not None:
-            stream.metadata = self._recording_metadata(g, traj, pl, target)
+            stream.metadata = self._recording_metadata(g, loaded, mounting, pl, target)
         self.stream = stream
         self._planning = False
         thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
@@ -619,12 +624,10 @@ class SimNode(Node):
             folder = self.recording_folder / f"{stamp}_{g.trajectory_name}_{n}"
         return Recorder(folder)
 
-    def _recording_metadata(self, g, traj, pl, target: str) -> dict:
-        from fluidlab_core import __version__
-        from fluidlab_ros.recording import sha256_of
+    def _recording_metadata(self, g, loaded, m, pl, target: str) -> dict:
+        import hashlib
 
-        path = self.store.find(g.trajectory_name)
-        m = load_mounting(traj.task)
+        from fluidlab_core import __version__
         scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
         T = 1.0 / self.control_rate
         times = np.arange(len(pl.velocities) + 1) * T
@@ -632,7 +635,8 @@ class SimNode(Node):
         seg = (times >= pl.task_start_time) & (times <= pl.task_end_time)
         r[seg] = pl.task_time_map(times[seg] - pl.task_start_time)[0] * scale  # in the file's own time
         meta = {"format": "fluidlab-recording", "version": 1, "trajectory_name": g.trajectory_name,
-                "trajectory_sha256": sha256_of(path), "trajectory_document": json.loads(path.read_text()),
+                "trajectory_sha256": hashlib.sha256(loaded.data).hexdigest(),
+                "trajectory_document": json.loads(loaded.data),
                 "robot": self.robot_model, "joint_names": list(self.robot.joint_names),
                 "controller_joint_names": list(self.controller_joints), "control_rate": self.control_rate,
                 "mode": self.mode, "target": target, "speed_scale": scale,
@@ -853,7 +857,7 @@ class SimNode(Node):
                 continue
             if msg["kind"] == "ready":
                 self._scene = msg
-                self._publish_markers()
+                self._build_markers(msg)
             if msg["kind"] == "particles":
                 colors = self._scene["colors"] if self._scene is not None else None
                 self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
@@ -879,39 +883,37 @@ class SimNode(Node):
         js.header.stamp = stamp
         self.pub_twin_js.publish(js)
         arm_q = self._arm_positions()
-        if arm_q is not None:
-            pose = se3_to_pose(self.robot.frame_placement(arm_q))
-            ps = PoseStamped()
-            ps.header.stamp, ps.header.frame_id = stamp, self.robot.base_frame
-            ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(x) for x in pose[:3])
-            o = ps.pose.orientation
-            o.x, o.y, o.z, o.w = (float(x) for x in pose[3:])
-            self.pub_tool.publish(ps)
-        self._state_ticks += 1
-        if self._scene is not None and self._state_ticks % 5 == 0:
-            self._publish_markers()  # the tool moves
-
-    def _publish_markers(self):
-        """Containers and other statics (grey) and the tool (its colour, at the arm's tool pose) as sphere
-        lists of their point samples, in the base frame; ids: statics 0.., tools 100.."""
-        scene = self._scene
-        if scene is None:
+        if arm_q is None:
             return
+        # the tool frame of the task last executed (the flange before any); this thread's own Robot
+        tool = self._state_robot or self.robot
+        pose = se3_to_pose(tool.frame_placement(arm_q))
+        ps = pose_msg(pose, self.robot.base_frame, 0)
+        ps.header.stamp = stamp
+        self.pub_tool.publish(ps)
+        self._state_ticks += 1
+        if self._markers is not None and self._state_ticks % 5 == 0 and not np.allclose(pose, self._marker_pose):
+            self._marker_pose = pose
+            for m in self._markers.markers:
+                if m.id >= 100:  # the tool moves with the arm
+                    m.pose = ps.pose
+                    m.header.stamp = stamp
+            self.pub_markers.publish(self._markers)
+
+    def _build_markers(self, scene: dict):
+        """Containers and other statics (grey) and the tool (its colour, at the arm's tool pose) as sphere
+        lists of their point samples, in the base frame; ids: statics 0.., tools 100... Built once per scene;
+        the state timer then only moves the tool markers."""
         stamp = self.get_clock().now().to_msg()
         out = MarkerArray()
         d = scene["dx"]
         for i, (name, pts) in enumerate(scene["statics"]):
             out.markers.append(marker(i, name, pts[:: max(1, len(pts) // 3000)], (0.72, 0.72, 0.74, 0.35), d,
-                                       self.robot.base_frame, stamp))
-        q = self._arm_positions()
-        tool_pose = None if q is None or self._tool_robot is None else se3_to_pose(self._tool_robot.frame_placement(q))
+                                      self.robot.base_frame, stamp))
         for i, (name, pts, color) in enumerate(scene["tools"]):
-            m = marker(100 + i, name, pts[:: max(1, len(pts) // 3000)], (*color, 1.0), 0.5 * d,
-                        self.robot.base_frame, stamp)
-            if tool_pose is not None:
-                m.pose = pose_msg(tool_pose, self.robot.base_frame, 0).pose
-            out.markers.append(m)
-        self.pub_markers.publish(out)
+            out.markers.append(marker(100 + i, name, pts[:: max(1, len(pts) // 3000)], (*color, 1.0), 0.5 * d,
+                                      self.robot.base_frame, stamp))
+        self._markers, self._marker_pose = out, np.zeros(7)  # the next state tick places the tool and publishes
 
     def _publish_diagnostics(self):
         stream = self.stream

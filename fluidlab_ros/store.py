@@ -35,6 +35,13 @@ class Info:
         return self.steps * self.dt
 
 
+@dataclass
+class Loaded:
+    path: Path
+    data: bytes
+    trajectory: Trajectory
+
+
 class TrajectoryStore:
     def __init__(self, folder: str | Path):
         self.folder = Path(folder).expanduser().resolve()
@@ -57,12 +64,18 @@ class TrajectoryStore:
             raise StoreError(f"trajectory name {name!r} is ambiguous: {', '.join(str(h) for h in hits)}")
         return hits[0]
 
-    def load(self, name: str) -> Trajectory:
+    def read(self, name: str) -> "Loaded":
+        """The file of trajectory `name`: its path, its bytes and the Trajectory they hold, from one read (so
+        that what is planned, hashed and recorded is the same document)."""
         path = self.find(name)
         try:
-            return Trajectory.load(path)
+            data = path.read_bytes()
+            return Loaded(path, data, Trajectory.loads(data, str(path)))
         except (TrajectoryError, OSError) as err:
             raise StoreError(f"trajectory {name!r} cannot be used: {err}") from None
+
+    def load(self, name: str) -> Trajectory:
+        return self.read(name).trajectory
 
     def info(self, path: Path, traj: Trajectory | None = None) -> Info:
         traj = traj or Trajectory.load(path)

@@ -140,6 +140,6 @@ def replay_worker(path: str, out_dir: str, disturbance: str, out, arch: str = "c
                 out.put({"kind": "feedback", "phase": phase, "progress": j / n})
 
         rep = replay(path, out_dir, disturbance, progress=progress)
-        out.put({"kind": "result", "report": rep, "report_path": str(__import__("pathlib").Path(out_dir) / "report.json")})
+        out.put({"kind": "result", "report": rep, "report_path": os.path.join(out_dir, "report.json")})
     except BaseException as err:  # noqa: BLE001
         out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})
