@@ -104,7 +104,8 @@ class Simulator:
         grad: False runs the fast forward solver; True runs the differentiable solver (build with
             requires_grad=True) with gradient checkpointing and returns the gradients with respect to every
             action, the initial tool poses and the initial particle state (see checkpoint.RolloutResult).
-        segment_steps: steps per checkpoint segment (default about sqrt(N), at most the buffer chosen at build).
+        segment_steps: steps per checkpoint segment (default: as long as the buffer chosen at build allows, see
+            checkpoint.plan_segments).
         checkpoint_dir: keep segment checkpoints in a private folder under this directory instead of in memory.
         progress: optional callable(phase, done, total), called once per step of each phase.
 

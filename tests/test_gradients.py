@@ -202,15 +202,21 @@ def test_rollout_refusals(setup):
     assert sim.get_state()["step"] == start["step"], "a refused rollout does not step"
 
 
-def test_segments_follow_sqrt_horizon_within_the_buffer():
-    """About sqrt(N) steps per segment, never more than the buffer holds, and clear refusals."""
+def test_segments_fill_the_buffer():
+    """Segments as long as the buffer allows (it is allocated at build): one segment when the horizon fits,
+    otherwise equal segments, so checkpoints stay under sqrt(N) while the buffer holds sqrt(N) steps."""
     from fluidlab_core.engine.checkpoint import plan_segments
 
-    assert plan_segments(10_000, 200) == 100  # 100 segments of 100 steps: memory ~ sqrt(N), not N
-    assert plan_segments(100_000, 200) == 200  # past the buffer: more, shorter segments
-    assert plan_segments(5, 200) == 3
-    assert plan_segments(5, 200, segment_steps=5) == 5
+    assert plan_segments(100, 200) == 100  # fits: one segment, nothing recomputed
+    assert plan_segments(1000, 200) == 200  # 5 checkpoints
+    assert plan_segments(1001, 200) == 167  # 6 equal segments, not 5 of 200 and one of 1
+    assert plan_segments(10_000, 200) == 200  # 50 checkpoints < sqrt(10,000)
+    assert -(-10_000 // plan_segments(10_000, 200)) <= 100
+    assert plan_segments(5, 200, segment_steps=2) == 2
+    assert plan_segments(5, 200, segment_steps=50) == 5
     with pytest.raises(ValueError, match="exceeds the gradient buffer"):
         plan_segments(100, 10, segment_steps=20)
+    with pytest.raises(ValueError, match="at least 1"):
+        plan_segments(100, 10, segment_steps=0)
     with pytest.raises(ValueError, match="grad_memory"):
         plan_segments(100, 0)

@@ -1,6 +1,7 @@
 """Checkpointed rollouts: the loss of N steps and its gradient in memory that does not grow with N.
 
-The N steps are split into segments of K steps (K about sqrt(N), at most what the solver's slot buffer holds).
+The N steps are split into segments of K steps, by default as long as the solver's slot buffer allows
+(plan_segments).
 The forward pass keeps only each segment's start state (in host memory, or on disk), running each segment
 through the buffer. The backward pass goes through the segments last to first: it restores the start
 state, re-runs the segment's forward to fill the buffer, seeds the gradient of the segment's last slot with
@@ -87,16 +88,24 @@ def rotation_tangent_grad(G: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 
 def plan_segments(n_steps: int, capacity_steps: int, segment_steps: int | None = None) -> int:
-    """Steps per segment: `segment_steps` if given, else ceil(sqrt(N)); never more than the buffer holds."""
+    """Steps per segment: `segment_steps` if given, else the fewest segments the buffer allows, of equal length.
+
+    The buffer is allocated at build, so longer segments cost no memory: they mean fewer checkpoints (N/K
+    host states, at most sqrt(N) whenever the buffer holds sqrt(N) steps) and less recomputation (every
+    segment but the last is run twice, about N − K steps). A horizon that fits the buffer is one segment."""
     if capacity_steps < 1:
         raise ValueError("the gradient buffer holds no whole step: build with a larger grad_memory")
-    k = int(segment_steps) if segment_steps else math.ceil(math.sqrt(n_steps))
-    if k < 1:
-        raise ValueError(f"segment_steps must be at least 1, got {segment_steps}")
-    if segment_steps and k > capacity_steps:
-        raise ValueError(f"segment_steps={k} exceeds the gradient buffer of {capacity_steps} steps chosen at build "
-                         f"(grad_memory); use segment_steps <= {capacity_steps} or build with more grad_memory")
-    return min(k, capacity_steps, n_steps)
+    if segment_steps is not None:
+        k = int(segment_steps)
+        if k < 1:
+            raise ValueError(f"segment_steps must be at least 1, got {segment_steps}")
+        if k > capacity_steps:
+            raise ValueError(f"segment_steps={k} exceeds the gradient buffer of {capacity_steps} steps chosen at "
+                             f"build (grad_memory); use segment_steps <= {capacity_steps} or build with more "
+                             f"grad_memory")
+        return min(k, n_steps)
+    n_segments = -(-n_steps // capacity_steps)
+    return -(-n_steps // n_segments)
 
 
 def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True, segment_steps=None,

@@ -67,9 +67,17 @@ class DiffMPMSolver:
         self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
         self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
         self.tau = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # Kirchhoff stress (Pa)
+        # G2P's gather before the projection out of statics and walls (the two have separate backwards)
+        self.x_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)  # x + Δt v_gathered (m)
+        self.v_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)  # gathered velocity (m/s)
+        self.C_pre = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # gathered affine velocity (1/s)
         self.grid_m = ti.field(real, shape=fast.grid_shape, needs_grad=True)  # node mass (kg)
         self.grid_mv = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node momentum
         self.grid_v = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node velocity after BCs
+        # per-thread copies of a grid gradient, for scatters without atomics (as MPMSolver's P2G)
+        self.copies = max(fast.scatter_copies, 1)
+        self.chunk = -(-n // self.copies)
+        self.grid_private = ti.Vector.field(3, real, shape=(self.copies,) + tuple(fast.grid_shape))
         # tools: pose at each slot and the twist held over substep s (world frame)
         nt = max(self.n_tools, 1)
         self.tool_p = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # origin (m)
@@ -205,6 +213,7 @@ class DiffMPMSolver:
 
     @ti.kernel
     def _write_tool_pose(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             for i in ti.static(range(3)):
                 self.tool_p[k, s][i] = p[k, i]
@@ -217,6 +226,7 @@ class DiffMPMSolver:
 
     @ti.kernel
     def _add_tool_grad(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             for i in ti.static(range(3)):
                 self.tool_p.grad[k, s][i] += p[k, i]
@@ -225,6 +235,7 @@ class DiffMPMSolver:
 
     @ti.kernel
     def _write_twist(self, s0: ti.i32, s1: ti.i32, twist: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
         for k, s in ti.ndrange(self.n_tools, (s0, s1)):
             for i in ti.static(range(3)):
                 self.tool_v[k, s][i] = twist[k, i]
@@ -237,6 +248,7 @@ class DiffMPMSolver:
 
     @ti.kernel
     def _sum_twist_grad(self, s0: ti.i32, s1: ti.i32):
+        ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             g = ti.Vector.zero(float, 6)
             for s in range(s0, s1):
@@ -300,33 +312,45 @@ class DiffMPMSolver:
 
     # --- substep kernels ----------------------------------------------------------------------------
     @ti.kernel
-    def clear_substep(self):
-        """Zero the grid and every per-substep intermediate, values and gradients."""
+    def clear_grid(self):
+        """Zero the grid and the body sums before a substep's forward."""
         for I in ti.grouped(self.grid_m):
             self.grid_m[I] = 0.0
             self.grid_mv[I] = ti.Vector.zero(float, 3)
-            self.grid_v[I] = ti.Vector.zero(float, 3)
-            self.grid_m.grad[I] = 0.0
-            self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
-            self.grid_v.grad[I] = ti.Vector.zero(float, 3)
-        for p in range(self.n_particles):
-            self.F_trial.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_rigid):
-            for p in range(self.n_particles):
-                self.x_g.grad[p] = ti.Vector.zero(float, 3)
-                self.v_g.grad[p] = ti.Vector.zero(float, 3)
-                self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
+            ti.loop_config(serialize=True)
             for b in range(self.rigid.n_bodies):
                 self.com_sum[b] = ti.Vector.zero(float, 3)
                 self.momentum[b] = ti.Vector.zero(float, 3)
                 self.A[b] = ti.Matrix.zero(float, 3, 3)
                 self.L[b] = ti.Vector.zero(float, 3)
                 self.inertia[b] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.kernel
+    def clear_substep_grads(self):
+        """Zero the gradients of the grid and of every per-substep intermediate before a substep's backward."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_m.grad[I] = 0.0
+            self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
+            self.grid_v.grad[I] = ti.Vector.zero(float, 3)
+        for p in range(self.n_particles):
+            self.F_trial.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.x_pre.grad[p] = ti.Vector.zero(float, 3)
+            self.v_pre.grad[p] = ti.Vector.zero(float, 3)
+            self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
+            if ti.static(len(self.svd_models) > 0):
+                self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
+                self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
+                self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
+            if ti.static(self.has_rigid):
+                self.x_g.grad[p] = ti.Vector.zero(float, 3)
+                self.v_g.grad[p] = ti.Vector.zero(float, 3)
+                self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.has_rigid):
+            ti.loop_config(serialize=True)
+            for b in range(self.rigid.n_bodies):
                 for f in ti.static((self.com_sum, self.momentum, self.L, self.omega)):
                     f.grad[b] = ti.Vector.zero(float, 3)
                 for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
@@ -395,6 +419,7 @@ class DiffMPMSolver:
         """Node velocities: gravity, statics, tools at their slot-s pose, walls."""
         for I in ti.grouped(self.grid_m):
             m = self.grid_m[I]
+            self.grid_v[I] = ti.Vector.zero(float, 3)
             if m > self.fast.mass_floor:  # see MPMSolver.mass_floor
                 vn = self.grid_mv[I] / m + self.dt * ti.Vector(self.fast.gravity)
                 xn = ti.Vector(self.fast.origin) + I * self.dx
@@ -406,27 +431,95 @@ class DiffMPMSolver:
                 vn = self.fast._walls(xn, vn)
                 self.grid_v[I] = vn
 
+    @ti.func
+    def _project(self, xp, new_v):
+        """Out of statics and back from past the walls."""
+        for k in ti.static(range(len(self.colliders))):
+            xp, new_v = self.colliders[k].particle(xp, new_v)
+        return self.fast._clamp_to_walls(xp, new_v)
+
     @ti.kernel
-    def g2p(self, s: ti.i32):
-        """Gather v and C, advect, project out of statics and walls (mpm.py, G2P)."""
+    def g2p_kernel(self, s: ti.i32):
+        """Gather v and C, advect, project out of statics and walls (mpm.py, G2P); keeps the gather's result
+        in x_pre, v_pre, C_pre for the backward."""
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
-            for k in ti.static(range(len(self.colliders))):
-                xp, new_v = self.colliders[k].particle(xp, new_v)
-            xp, new_v = self.fast._clamp_to_walls(xp, new_v)
-            if ti.static(self.has_rigid):
-                self.x_g[p] = xp
-                self.v_g[p] = new_v
-                self.C_g[p] = new_C
-            else:
-                self.x[s + 1, p] = xp
-                self.v[s + 1, p] = new_v
-                self.C[s + 1, p] = new_C
+            self.x_pre[p], self.v_pre[p], self.C_pre[p] = xp, new_v, new_C
+            xp, new_v = self._project(xp, new_v)
+            self._store_g2p(p, s, xp, new_v, new_C)
+
+    @ti.func
+    def _store_g2p(self, p, s, xp, vp, Cp):
+        """Into slot s + 1, or with rigid bodies into x_g, v_g, C_g for the rigid projection."""
+        if ti.static(self.has_rigid):
+            self.x_g[p], self.v_g[p], self.C_g[p] = xp, vp, Cp
+        else:
+            self.x[s + 1, p], self.v[s + 1, p], self.C[s + 1, p] = xp, vp, Cp
+
+    @ti.kernel
+    def g2p_project(self, s: ti.i32):
+        """The projection alone, from x_pre, v_pre, C_pre: differentiated by Taichi (g2p_grad)."""
+        for p in range(self.n_particles):
+            xp, vp = self._project(self.x_pre[p], self.v_pre[p])
+            self._store_g2p(p, s, xp, vp, self.C_pre[p])
+
+    @ti.kernel
+    def g2p_gather_grad(self, s: ti.i32):
+        """Backward of the gather and advection, by hand (Taichi's reverse of the unrolled gather costs ~5x its
+        forward). With X = (x − origin)/Δx, f = X − base, weights w = w₀(f₀) w₁(f₁) w₂(f₂) and d = offset − f:
+            x_pre = x + Δt v,  v = Σ w g_i,  C = (4/Δx) Σ w g_i dᵀ
+        so, with ḡv = ∂L/∂v + Δt ∂L/∂x_pre and Ḡ = ∂L/∂C:
+            ∂L/∂g_i += w (ḡv + (4/Δx) Ḡ d)
+            ∂L/∂f   += Σ_i [g_i·(ḡv + (4/Δx) Ḡ d) ∇_f w − (4/Δx) w Ḡᵀ g_i]
+            ∂L/∂x   += ∂L/∂x_pre + ∂L/∂f / Δx
+        with the quadratic B-spline derivatives w₀' = f − 1.5, w₁' = −2(f − 1), w₂' = f − 0.5."""
+        ti.loop_config(block_dim=1)
+        for c in range(self.copies):
+            for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                self._gather_grad_particle(c, s, p)
+        for I in ti.grouped(self.grid_m):
+            g = ti.Vector.zero(float, 3)
+            for c in range(self.copies):
+                g += self.grid_private[c, I[0], I[1], I[2]]
+                self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+            self.grid_v.grad[I] += g
+
+    @ti.func
+    def _gather_grad_particle(self, c, s, p):
+            xp = self.x[s, p]
+            gx = self.x_pre.grad[p]
+            gv = self.v_pre.grad[p] + self.dt * gx
+            gC = self.C_pre.grad[p]
+            base, fx, w = self.fast._stencil(xp)
+            dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+            k4 = 4.0 * self.inv_dx
+            gf = ti.Vector.zero(float, 3)
+            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                d = offset - fx
+                wx, wy, wz = w[offset[0]][0], w[offset[1]][1], w[offset[2]][2]
+                weight = wx * wy * wz
+                g_i = self.grid_v[base + offset]
+                h = gv + k4 * (gC @ d)
+                i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+                self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
+                grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
+                gf += g_i.dot(h) * grad_w - (k4 * weight) * (gC.transpose() @ g_i)
+            self.x.grad[s, p] += gx + self.inv_dx * gf
+
+    @ti.ad.grad_replaced
+    def g2p(self, s: int):
+        self.g2p_kernel(s)
+
+    @ti.ad.grad_for(g2p)
+    def g2p_grad(self, s: int):
+        self.g2p_project.grad(s)
+        self.g2p_gather_grad(s)
 
     @ti.kernel
     def advance_tools(self, s: ti.i32):
         """p ← p + Δt v, R ← exp([ω]× Δt) R."""
+        ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
             self.tool_R[k, s + 1] = rotation_from_rotvec(self.tool_w[k, s] * self.dt) @ self.tool_R[k, s]
@@ -456,16 +549,19 @@ class DiffMPMSolver:
     @ti.kernel
     def body_normalise(self):
         """A/|A|: order-one entries for the SVD (R is unchanged by the scale)."""
+        ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self.A_n[b] = self.A[b] / ti.sqrt((self.A[b] * self.A[b]).sum())
 
     @ti.kernel
     def body_svd_kernel(self):
+        ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self.U_b[b], self.sig_b[b], self.V_b[b] = svd3.svd(self.A_n[b])
 
     @ti.kernel
     def body_svd_grad_kernel(self):
+        ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self.A_n.grad[b] += self.backward_svd(self.U_b.grad[b], self.sig_b.grad[b], self.V_b.grad[b],
                                                   self.U_b[b], self.sig_b[b], self.V_b[b])
@@ -481,6 +577,7 @@ class DiffMPMSolver:
     @ti.kernel
     def body_rotation(self):
         """R = U Vᵀ, the polar rotation of A."""
+        ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self.R[b] = self.U_b[b] @ self.V_b[b].transpose()
 
@@ -496,6 +593,7 @@ class DiffMPMSolver:
     @ti.kernel
     def body_omega(self):
         """ω = I⁻¹ L."""
+        ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self.omega[b] = self.inertia[b].inverse() @ self.L[b]
 
@@ -540,7 +638,12 @@ class DiffMPMSolver:
     @ti.ad.grad_replaced
     def substep(self, s: int):
         """Slot s → slot s + 1."""
-        self.clear_substep()
+        self._forward(s, True)
+
+    def _forward(self, s: int, whole: bool):
+        """The substep's forward kernels; without `whole`, only those whose results the backward reads (the
+        slot s + 1 writes of the rigid projection and the tool motion are left out)."""
+        self.clear_grid()
         self.strain_update(s)  # strain update
         if self.svd_models:
             self.svd()  # SVD of F_trial
@@ -552,15 +655,17 @@ class DiffMPMSolver:
         if self.rigid is not None:
             for kernel in self._rigid_kernels():  # rigid projection
                 kernel()
-            self.rigid_write(s)
-        if self.n_tools:
+            if whole:
+                self.rigid_write(s)
+        if self.n_tools and whole:
             self.advance_tools(s)  # tool motion
 
     @ti.ad.grad_for(substep)
     def substep_grad(self, s: int):
         """Add the gradients of slot s from those of slot s + 1: re-run the substep's forward kernels (the grid
         and the other intermediates are not stored), then their gradients in reverse order."""
-        self.substep(s)
+        self._forward(s, False)
+        self.clear_substep_grads()
         if self.n_tools:
             self.advance_tools.grad(s)
         if self.rigid is not None:
@@ -570,7 +675,7 @@ class DiffMPMSolver:
                     self.body_svd_grad()
                 else:
                     kernel.grad()
-        self.g2p.grad(s)
+        self.g2p_grad(s)
         self.grid_update.grad(s)
         self.p2g.grad(s)
         for k in reversed(range(len(self.models))):
