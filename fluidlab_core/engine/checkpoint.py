@@ -14,7 +14,6 @@ start and none goes to the action.
 """
 from __future__ import annotations
 
-import math
 import os
 import shutil
 import tempfile
@@ -117,35 +116,26 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
     n_steps = len(velocities)
     sub = sim.substeps
     dt = sim.dt
-    n_tools = len(sim.tools.specs)
     capacity = (diff.n_slots - 1) // sub
     K = plan_segments(n_steps, capacity, segment_steps)
     n_seg = -(-n_steps // K)
     store = CheckpointStore(checkpoint_dir)
-    applied = np.zeros_like(velocities)  # twists after workspace clipping
-    clipped_dims = np.zeros((n_steps, n_tools, 3), dtype=bool)
     step_losses = np.zeros(n_steps)
     t0 = time.perf_counter()
+    start = sim.get_state()
+    applied, clipped_dims = _clip_all(sim, start, velocities)
 
     def seg_steps(seg):
         return range(seg * K, min(n_steps, (seg + 1) * K))
 
     def state_at(slot, step):
-        x, v = diff.read_xv(slot)
-        if n_tools:
-            p = diff.tool_p.to_numpy()[:n_tools, slot].astype(np.float64)
-            R = diff.tool_R.to_numpy()[:n_tools, slot].astype(np.float64)
-        else:
-            p, R = np.zeros((0, 3)), np.zeros((0, 3, 3))
-        return StepState(step, step * dt, x, v, p, R)
+        return StepState(step, step * dt, *diff.read_step(slot))
 
     def run_segment(seg, first_pass, phase):
-        for j, g in enumerate(seg_steps(seg)):
+        steps = seg_steps(seg)
+        diff.write_twists(applied[steps.start:steps.stop], sub)
+        for j, g in enumerate(steps):
             s0 = j * sub
-            if first_pass and n_tools:
-                position = diff.tool_p.to_numpy()[:n_tools, s0].astype(np.float64)
-                applied[g], clipped_dims[g] = clip_twists(sim.tools.specs, position, velocities[g], dt)
-            diff.write_twist(s0, s0 + sub, applied[g])
             for i in range(sub):
                 diff.substep(s0 + i)
             if first_pass and loss.active(g + 1, n_steps):
@@ -154,7 +144,6 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
                 progress(phase, g + 1, n_steps)
 
     try:
-        start = sim.get_state()
         diff.write_state(0, start)
         for seg in range(n_seg):
             if seg > 0:
@@ -210,8 +199,8 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
                 diff.add_state_grad(s1, grads)
             for i in reversed(range(sub)):
                 diff.substep_grad(s0 + i)
+            tg, bad = diff.step_grad_end(s0, s1)
             if n_tools:
-                tg = diff.twist_grad_sum(s0, s1)
                 cl = clipped_dims[g]
                 if cl.any():
                     # v = (b − p)/dt on clipped components: the gradient goes to p at the step's start
@@ -219,7 +208,6 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
                     diff.add_state_grad(s0, {"tool_position": dp})
                     tg[:, :3] = np.where(cl, 0.0, tg[:, :3])
                 grad_actions[g] = tg * np.array([s.action_mask for s in sim.tools.specs], dtype=np.float64)
-            bad = diff.nonfinite_grad_fields(s0)
             if bad:
                 raise NonFiniteGradientError(
                     f"the gradient became NaN or infinite in {', '.join(bad)} at step {g} (t = {g * dt:.4g} s), "
@@ -238,6 +226,22 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
     else:
         result.grad_tool_position = np.zeros((0, 3))
         result.grad_tool_rotation = np.zeros((0, 3))
+
+
+def _clip_all(sim, start: dict, velocities: np.ndarray):
+    """Workspace clipping of every step, up front: tool origins depend on the twists alone, so they advance on
+    the host in float64 as in `Simulator.step` (ToolState), substep by substep."""
+    specs, dt, sub = sim.tools.specs, sim.dt, sim.substeps
+    applied = np.zeros_like(velocities)
+    clipped_dims = np.zeros((len(velocities), len(specs), 3), dtype=bool)
+    if not specs:
+        return applied, clipped_dims
+    position = np.array(start["tool_position"], dtype=np.float64)
+    for g in range(len(velocities)):
+        applied[g], clipped_dims[g] = clip_twists(specs, position, velocities[g], dt)
+        for _ in range(sub):
+            position += applied[g, :, :3] * (dt / sub)
+    return applied, clipped_dims
 
 
 def _nonfinite_state(state: dict) -> str:

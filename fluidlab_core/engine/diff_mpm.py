@@ -29,7 +29,7 @@ precision instead of float64 numpy.
 import numpy as np
 import taichi as ti
 
-from fluidlab_core.engine import constitutive, statics
+from fluidlab_core.engine import constitutive
 from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine.svd import make_backward_svd
 
@@ -61,8 +61,7 @@ class DiffMPMSolver:
         self.C = ti.Matrix.field(3, 3, real, shape=shape, needs_grad=True)  # APIC affine velocity (1/s)
         self.F = ti.Matrix.field(3, 3, real, shape=shape, needs_grad=True)  # deformation gradient
         # per-substep intermediates, recomputed by the backward pass
-        self.F_trial = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # (I + Δt C) F before the model
-        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of F_trial: left rotation
+        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of (I + Δt C) F: left rotation
         self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
         self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
         self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
@@ -84,7 +83,6 @@ class DiffMPMSolver:
         self.tool_R = ti.Matrix.field(3, 3, real, shape=(nt, self.n_slots), needs_grad=True)  # tool to world
         self.tool_v = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # linear (m/s)
         self.tool_w = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # angular (rad/s)
-        self.twist_grad = ti.Vector.field(6, real, shape=nt)  # Σ over a step's substeps of (v, ω) gradients
 
         self.models = [constitutive.MODELS[name] for name in fast.model_names]
         self.svd_models = [k for k, name in enumerate(fast.model_names) if name not in constitutive.NO_SVD]
@@ -110,7 +108,7 @@ class DiffMPMSolver:
             self.inertia = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=True)  # about c (kg m²)
             self.omega = ti.Vector.field(3, real, shape=nb, needs_grad=True)  # angular velocity (rad/s)
             self._set_body_mass()
-        # NaN watch on gradients: bits 1 x, 2 v, 4 C, 8 F, 16 tools
+        # NaN watch on gradients: bits 1 x, 2 v, 4 C, 8 F, 16 tools (GRAD_FIELDS)
         self.bad = ti.field(ti.i32, shape=())
 
     @ti.kernel
@@ -166,13 +164,6 @@ class DiffMPMSolver:
                     self.C.grad[s, p][i, j] += C[p, i, j]
                     self.F.grad[s, p][i, j] += F[p, i, j]
 
-    @ti.kernel
-    def _read_xv(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray()):
-        for p in range(self.n_particles):
-            for i in ti.static(range(3)):
-                x[p, i] = self.x[s, p][i]
-                v[p, i] = self.v[s, p][i]
-
     def write_state(self, s: int, state: dict):
         """Put a particle state {x, v, C, F} and tool poses {tool_position, tool_rotation} into slot s."""
         r = self.np_real
@@ -205,12 +196,6 @@ class DiffMPMSolver:
             gR = np.zeros((self.n_tools, 3, 3)) if grad.get("tool_rotation") is None else grad["tool_rotation"]
             self._add_tool_grad(s, np.ascontiguousarray(gp, dtype=r), np.ascontiguousarray(gR, dtype=r))
 
-    def read_xv(self, s: int):
-        n, r = self.n_particles, self.np_real
-        x, v = np.zeros((n, 3), r), np.zeros((n, 3), r)
-        self._read_xv(s, x, v)
-        return x.astype(np.float64), v.astype(np.float64)
-
     @ti.kernel
     def _write_tool_pose(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
         ti.loop_config(serialize=True)
@@ -234,35 +219,79 @@ class DiffMPMSolver:
                     self.tool_R.grad[k, s][i, j] += R[k, i, j]
 
     @ti.kernel
-    def _write_twist(self, s0: ti.i32, s1: ti.i32, twist: ti.types.ndarray()):
+    def _write_twists(self, twist: ti.types.ndarray(), substeps: ti.i32):
         ti.loop_config(serialize=True)
-        for k, s in ti.ndrange(self.n_tools, (s0, s1)):
-            for i in ti.static(range(3)):
-                self.tool_v[k, s][i] = twist[k, i]
-                self.tool_w[k, s][i] = twist[k, 3 + i]
+        for j, k, i in ti.ndrange(twist.shape[0], self.n_tools, substeps):
+            for d in ti.static(range(3)):
+                self.tool_v[k, j * substeps + i][d] = twist[j, k, d]
+                self.tool_w[k, j * substeps + i][d] = twist[j, k, 3 + d]
 
-    def write_twist(self, s0: int, s1: int, twist: np.ndarray):
-        """Hold tool twists (n_tools, 6) over substeps s0 … s1 − 1."""
-        if self.n_tools:
-            self._write_twist(s0, s1, np.ascontiguousarray(twist, dtype=self.np_real))
+    def write_twists(self, twists: np.ndarray, substeps: int):
+        """Hold the twists (K, n_tools, 6) of K steps over their substeps, from slot 0 on (one launch)."""
+        if self.n_tools and len(twists):
+            self._write_twists(np.ascontiguousarray(twists, dtype=self.np_real), substeps)
 
     @ti.kernel
-    def _sum_twist_grad(self, s0: ti.i32, s1: ti.i32):
+    def _read_step(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), tp: ti.types.ndarray(),
+                   tR: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
+                v[p, i] = self.v[s, p][i]
         ti.loop_config(serialize=True)
         for k in range(self.n_tools):
-            g = ti.Vector.zero(float, 6)
+            for i in ti.static(range(3)):
+                tp[k, i] = self.tool_p[k, s][i]
+                for j in ti.static(range(3)):
+                    tR[k, i, j] = self.tool_R[k, s][i, j]
+
+    def read_step(self, s: int):
+        """Positions, velocities, tool origins and rotations of slot s as float64 arrays (one launch)."""
+        n, r, nt = self.n_particles, self.np_real, self.n_tools
+        x, v = np.zeros((n, 3), r), np.zeros((n, 3), r)
+        tp, tR = np.zeros((max(nt, 1), 3), r), np.zeros((max(nt, 1), 3, 3), r)
+        self._read_step(s, x, v, tp, tR)
+        return (x.astype(np.float64), v.astype(np.float64), tp[:nt].astype(np.float64),
+                tR[:nt].astype(np.float64))
+
+    @ti.kernel
+    def _step_grad_end(self, s0: ti.i32, s1: ti.i32, out: ti.types.ndarray()):
+        self.bad[None] = 0
+        for p in range(self.n_particles):
+            bits = 0
+            if not (ti.abs(self.x.grad[s0, p]).max() < 1e30):
+                bits |= 1
+            if not (ti.abs(self.v.grad[s0, p]).max() < 1e30):
+                bits |= 2
+            if not (ti.abs(self.C.grad[s0, p]).max() < 1e30):
+                bits |= 4
+            if not (ti.abs(self.F.grad[s0, p]).max() < 1e30):
+                bits |= 8
+            if bits > 0:
+                ti.atomic_or(self.bad[None], bits)
+        ti.loop_config(serialize=True)
+        for k in range(self.n_tools):
+            if not (ti.abs(self.tool_p.grad[k, s0]).max() < 1e30 and ti.abs(self.tool_R.grad[k, s0]).max() < 1e30):
+                self.bad[None] |= 16
+            for i in ti.static(range(6)):
+                out[k * 6 + i] = 0.0
             for s in range(s0, s1):
                 for i in ti.static(range(3)):
-                    g[i] += self.tool_v.grad[k, s][i]
-                    g[3 + i] += self.tool_w.grad[k, s][i]
-            self.twist_grad[k] = g
+                    out[k * 6 + i] += self.tool_v.grad[k, s][i]
+                    out[k * 6 + 3 + i] += self.tool_w.grad[k, s][i]
+        out[self.n_tools * 6] = self.bad[None]
 
-    def twist_grad_sum(self, s0: int, s1: int) -> np.ndarray:
-        """(n_tools, 6) gradient of the twists held over substeps s0 … s1 − 1."""
-        if not self.n_tools:
-            return np.zeros((0, 6))
-        self._sum_twist_grad(s0, s1)
-        return self.twist_grad.to_numpy()[: self.n_tools].astype(np.float64)
+    GRAD_FIELDS = ("positions (x)", "velocities (v)", "affine velocities (C)", "deformation gradients (F)",
+                   "tool poses")
+
+    def step_grad_end(self, s0: int, s1: int):
+        """After the backward of the substeps s0 … s1 − 1: the (n_tools, 6) gradient of the twists held over them,
+        and the names of the slot-s0 gradient fields holding a NaN or infinity (one launch)."""
+        out = np.zeros(self.n_tools * 6 + 1, self.np_real)
+        self._step_grad_end(s0, s1, out)
+        bits = int(out[-1])
+        bad = [name for i, name in enumerate(self.GRAD_FIELDS) if bits & (1 << i)]
+        return out[:-1].reshape(self.n_tools, 6).astype(np.float64), bad
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
@@ -271,6 +300,7 @@ class DiffMPMSolver:
             self.v[dst, p] = self.v[src, p]
             self.C[dst, p] = self.C[src, p]
             self.F[dst, p] = self.F[src, p]
+        ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             self.tool_p[k, dst] = self.tool_p[k, src]
             self.tool_R[k, dst] = self.tool_R[k, src]
@@ -284,49 +314,6 @@ class DiffMPMSolver:
             f.grad.fill(0.0)
 
     @ti.kernel
-    def _find_nonfinite_grad(self, s: ti.i32):
-        self.bad[None] = 0
-        for p in range(self.n_particles):
-            bits = 0
-            if not (ti.abs(self.x.grad[s, p]).max() < 1e30):
-                bits |= 1
-            if not (ti.abs(self.v.grad[s, p]).max() < 1e30):
-                bits |= 2
-            if not (ti.abs(self.C.grad[s, p]).max() < 1e30):
-                bits |= 4
-            if not (ti.abs(self.F.grad[s, p]).max() < 1e30):
-                bits |= 8
-            if bits > 0:
-                ti.atomic_or(self.bad[None], bits)
-        for k in range(self.n_tools):
-            if not (ti.abs(self.tool_p.grad[k, s]).max() < 1e30 and ti.abs(self.tool_R.grad[k, s]).max() < 1e30):
-                ti.atomic_or(self.bad[None], 16)
-
-    def nonfinite_grad_fields(self, s: int) -> list[str]:
-        """Names of the slot-s gradient fields holding a NaN or infinity."""
-        self._find_nonfinite_grad(s)
-        bits = int(self.bad[None])
-        names = ("positions (x)", "velocities (v)", "affine velocities (C)", "deformation gradients (F)",
-                 "tool poses")
-        return [name for i, name in enumerate(names) if bits & (1 << i)]
-
-    # --- substep kernels ----------------------------------------------------------------------------
-    @ti.kernel
-    def clear_grid(self):
-        """Zero the grid and the body sums before a substep's forward."""
-        for I in ti.grouped(self.grid_m):
-            self.grid_m[I] = 0.0
-            self.grid_mv[I] = ti.Vector.zero(float, 3)
-        if ti.static(self.has_rigid):
-            ti.loop_config(serialize=True)
-            for b in range(self.rigid.n_bodies):
-                self.com_sum[b] = ti.Vector.zero(float, 3)
-                self.momentum[b] = ti.Vector.zero(float, 3)
-                self.A[b] = ti.Matrix.zero(float, 3, 3)
-                self.L[b] = ti.Vector.zero(float, 3)
-                self.inertia[b] = ti.Matrix.zero(float, 3, 3)
-
-    @ti.kernel
     def clear_substep_grads(self):
         """Zero the gradients of the grid and of every per-substep intermediate before a substep's backward."""
         for I in ti.grouped(self.grid_m):
@@ -334,7 +321,6 @@ class DiffMPMSolver:
             self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
             self.grid_v.grad[I] = ti.Vector.zero(float, 3)
         for p in range(self.n_particles):
-            self.F_trial.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.x_pre.grad[p] = ti.Vector.zero(float, 3)
@@ -356,36 +342,38 @@ class DiffMPMSolver:
                 for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
                     f.grad[b] = ti.Matrix.zero(float, 3, 3)
 
-    @ti.kernel
-    def strain_update(self, s: ti.i32):
-        """F_trial = (I + Δt C) F."""
-        for p in range(self.n_particles):
-            self.F_trial[p] = (ti.Matrix.identity(float, 3) + self.dt * self.C[s, p]) @ self.F[s, p]
+    @ti.func
+    def _strain(self, s, p):
+        """F_trial = (I + Δt C) F, the deformation gradient before the constitutive model."""
+        return (ti.Matrix.identity(float, 3) + self.dt * self.C[s, p]) @ self.F[s, p]
 
     @ti.kernel
-    def svd_kernel(self):
+    def svd_kernel(self, s: ti.i32):
         """U Σ Vᵀ = F_trial for particles whose model needs it."""
         for p in range(self.n_particles):
             for k in ti.static(self.svd_models):
                 if self.fast.model[p] == k:
-                    self.U[p], self.sig[p], self.V[p] = svd3.svd(self.F_trial[p])
+                    self.U[p], self.sig[p], self.V[p] = svd3.svd(self._strain(s, p))
 
     @ti.kernel
-    def svd_grad_kernel(self):
-        """F_trial gradient from the U, Σ, V gradients (svd.py)."""
+    def svd_grad_kernel(self, s: ti.i32):
+        """Gradient of F_trial from those of U, Σ, V (svd.py), on to C and F: with G = ∂L/∂F_trial,
+        ∂L/∂C += Δt G Fᵀ and ∂L/∂F += (I + Δt C)ᵀ G."""
         for p in range(self.n_particles):
             for k in ti.static(self.svd_models):
                 if self.fast.model[p] == k:
-                    self.F_trial.grad[p] += self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p],
-                                                              self.U[p], self.sig[p], self.V[p])
+                    G = self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
+                                          self.V[p])
+                    self.C.grad[s, p] += self.dt * G @ self.F[s, p].transpose()
+                    self.F.grad[s, p] += (ti.Matrix.identity(float, 3) + self.dt * self.C[s, p]).transpose() @ G
 
     @ti.ad.grad_replaced
-    def svd(self):
-        self.svd_kernel()
+    def svd(self, s: int):
+        self.svd_kernel(s)
 
     @ti.ad.grad_for(svd)
-    def svd_grad(self):
-        self.svd_grad_kernel()
+    def svd_grad(self, s: int):
+        self.svd_grad_kernel(s)
 
     @ti.kernel
     def stress(self, s: ti.i32, k: ti.template()):
@@ -394,12 +382,15 @@ class DiffMPMSolver:
         for p in range(self.n_particles):
             if self.fast.model[p] == k:
                 prm = self.fast.material_params[self.fast.material[p]]
-                self.F_model[p], self.tau[p] = self.models[k](self.F_trial[p], self.C[s, p], prm, self.U[p],
+                self.F_model[p], self.tau[p] = self.models[k](self._strain(s, p), self.C[s, p], prm, self.U[p],
                                                                self.sig[p], self.V[p])
 
     @ti.kernel
     def p2g(self, s: ti.i32):
-        """Atomic scatter of mass and momentum with the stress τ (mpm.py, P2G)."""
+        """Clear the grid, then the atomic scatter of mass and momentum with the stress τ (mpm.py, P2G)."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_m[I] = 0.0
+            self.grid_mv[I] = ti.Vector.zero(float, 3)
         for p in range(self.n_particles):
             dt, dx, inv_dx = self.dt, self.dx, self.inv_dx
             base, fx, w = self.fast._stencil(self.x[s, p])
@@ -416,7 +407,8 @@ class DiffMPMSolver:
 
     @ti.kernel
     def grid_update(self, s: ti.i32):
-        """Node velocities: gravity, statics, tools at their slot-s pose, walls."""
+        """Node velocities: gravity, statics, tools at their slot-s pose, walls; then the tools move to their slot
+        s + 1 pose: p ← p + Δt v, R ← exp([ω]× Δt) R."""
         for I in ti.grouped(self.grid_m):
             m = self.grid_m[I]
             self.grid_v[I] = ti.Vector.zero(float, 3)
@@ -430,6 +422,10 @@ class DiffMPMSolver:
                                                   self.tool_w[k, s])
                 vn = self.fast._walls(xn, vn)
                 self.grid_v[I] = vn
+        ti.loop_config(serialize=True)
+        for k in range(self.n_tools):
+            self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
+            self.tool_R[k, s + 1] = rotation_from_rotvec(self.tool_w[k, s] * self.dt) @ self.tool_R[k, s]
 
     @ti.func
     def _project(self, xp, new_v):
@@ -516,18 +512,17 @@ class DiffMPMSolver:
         self.g2p_project.grad(s)
         self.g2p_gather_grad(s)
 
-    @ti.kernel
-    def advance_tools(self, s: ti.i32):
-        """p ← p + Δt v, R ← exp([ω]× Δt) R."""
-        ti.loop_config(serialize=True)
-        for k in range(self.n_tools):
-            self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
-            self.tool_R[k, s + 1] = rotation_from_rotvec(self.tool_w[k, s] * self.dt) @ self.tool_R[k, s]
-
     # --- rigid projection (rigid.py), differentiable ------------------------------------------------
     @ti.kernel
     def body_sums(self):
-        """Σ m x and Σ m v per body."""
+        """Σ m x and Σ m v per body (the sums cleared first)."""
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self.com_sum[b] = ti.Vector.zero(float, 3)
+            self.momentum[b] = ti.Vector.zero(float, 3)
+            self.A[b] = ti.Matrix.zero(float, 3, 3)
+            self.L[b] = ti.Vector.zero(float, 3)
+            self.inertia[b] = ti.Matrix.zero(float, 3, 3)
         for p in range(self.n_particles):
             b = self.rigid.body[p]
             if b >= 0:
@@ -643,10 +638,8 @@ class DiffMPMSolver:
     def _forward(self, s: int, whole: bool):
         """The substep's forward kernels; without `whole`, only those whose results the backward reads (the
         slot s + 1 writes of the rigid projection and the tool motion are left out)."""
-        self.clear_grid()
-        self.strain_update(s)  # strain update
         if self.svd_models:
-            self.svd()  # SVD of F_trial
+            self.svd(s)  # SVD of F_trial
         for k in range(len(self.models)):
             self.stress(s, k)  # constitutive models
         self.p2g(s)  # P2G
@@ -657,8 +650,6 @@ class DiffMPMSolver:
                 kernel()
             if whole:
                 self.rigid_write(s)
-        if self.n_tools and whole:
-            self.advance_tools(s)  # tool motion
 
     @ti.ad.grad_for(substep)
     def substep_grad(self, s: int):
@@ -666,8 +657,6 @@ class DiffMPMSolver:
         and the other intermediates are not stored), then their gradients in reverse order."""
         self._forward(s, False)
         self.clear_substep_grads()
-        if self.n_tools:
-            self.advance_tools.grad(s)
         if self.rigid is not None:
             self.rigid_write.grad(s)
             for kernel in reversed(self._rigid_kernels()):
@@ -681,5 +670,4 @@ class DiffMPMSolver:
         for k in reversed(range(len(self.models))):
             self.stress.grad(s, k)
         if self.svd_models:
-            self.svd_grad()
-        self.strain_update.grad(s)
+            self.svd_grad(s)
