@@ -73,10 +73,21 @@ class DiffMPMSolver:
         self.grid_m = ti.field(real, shape=fast.grid_shape, needs_grad=True)  # node mass (kg)
         self.grid_mv = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node momentum
         self.grid_v = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node velocity after BCs
+        # what the backward of substep s reads, kept by the forward so that it need not re-run P2G, the grid
+        # update and the gather: the grid before and after its update, and the gather's result
+        n_sub = self.n_slots - 1
+        self.store_m = ti.field(real, shape=(n_sub,) + tuple(fast.grid_shape))
+        self.store_mv = ti.Vector.field(3, real, shape=(n_sub,) + tuple(fast.grid_shape))
+        self.store_v = ti.Vector.field(3, real, shape=(n_sub,) + tuple(fast.grid_shape))
+        self.store_x_pre = ti.Vector.field(3, real, shape=(n_sub, n))
+        self.store_v_pre = ti.Vector.field(3, real, shape=(n_sub, n))
+        if fast.rigid is not None:  # otherwise C_pre is C of slot s + 1
+            self.store_C_pre = ti.Matrix.field(3, 3, real, shape=(n_sub, n))
         # per-thread copies of a grid gradient, for scatters without atomics (as MPMSolver's P2G)
         self.copies = max(fast.scatter_copies, 1)
         self.chunk = -(-n // self.copies)
         self.grid_private = ti.Vector.field(3, real, shape=(self.copies,) + tuple(fast.grid_shape))
+        self.grid_private_m = ti.field(real, shape=(self.copies,) + tuple(fast.grid_shape))
         # tools: pose at each slot and the twist held over substep s (world frame)
         nt = max(self.n_tools, 1)
         self.tool_p = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # origin (m)
@@ -314,13 +325,23 @@ class DiffMPMSolver:
             f.grad.fill(0.0)
 
     @ti.kernel
-    def clear_substep_grads(self):
-        """Zero the gradients of the grid and of every per-substep intermediate before a substep's backward."""
+    def restore(self, s: ti.i32):
+        """Before substep s's backward: its grid and gather result as the forward left them (g2p_kernel), and
+        zero gradients for the grid and every per-substep intermediate."""
         for I in ti.grouped(self.grid_m):
+            self.grid_m[I] = self.store_m[s, I]
+            self.grid_mv[I] = self.store_mv[s, I]
+            self.grid_v[I] = self.store_v[s, I]
             self.grid_m.grad[I] = 0.0
             self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
             self.grid_v.grad[I] = ti.Vector.zero(float, 3)
         for p in range(self.n_particles):
+            self.x_pre[p] = self.store_x_pre[s, p]
+            self.v_pre[p] = self.store_v_pre[s, p]
+            if ti.static(self.has_rigid):
+                self.C_pre[p] = self.store_C_pre[s, p]
+            else:
+                self.C_pre[p] = self.C[s + 1, p]
             self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
             self.x_pre.grad[p] = ti.Vector.zero(float, 3)
@@ -385,25 +406,81 @@ class DiffMPMSolver:
                 self.F_model[p], self.tau[p] = self.models[k](self._strain(s, p), self.C[s, p], prm, self.U[p],
                                                                self.sig[p], self.V[p])
 
+    @ti.func
+    def _p2g_terms(self, s, p):
+        """A particle's P2G inputs: stencil, mass, momentum m v and affine momentum A = k τ + m C with
+        k = −Δt V⁰ 4/Δx² (mpm.py)."""
+        base, fx, w = self.fast._stencil(self.x[s, p])
+        mp = self.fast.mass[p]
+        k_tau = -self.dt * self.fast.rest_volume[p] * 4.0 * self.inv_dx * self.inv_dx
+        affine = k_tau * self.tau[p] + mp * self.C[s, p]
+        return base, fx, w, mp, k_tau, mp * self.v[s, p], affine
+
     @ti.kernel
-    def p2g(self, s: ti.i32):
-        """Clear the grid, then the atomic scatter of mass and momentum with the stress τ (mpm.py, P2G)."""
+    def p2g_kernel(self, s: ti.i32):
+        """Scatter of mass and momentum with the stress τ (mpm.py, P2G) into per-thread grid copies, summed
+        into grid_m and grid_mv (no atomics, as MPMSolver on the CPU)."""
+        ti.loop_config(block_dim=1)
+        for c in range(self.copies):
+            for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                if ti.static(not self.has_rigid):
+                    self.F[s + 1, p] = self.F_model[p]
+                base, fx, w, mp, k_tau, momentum, affine = self._p2g_terms(s, p)
+                for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                    dpos = (offset - fx) * self.dx
+                    weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+                    i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+                    self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * (momentum + affine @ dpos)
+                    self.grid_private_m[c, i, j, k] = self.grid_private_m[c, i, j, k] + weight * mp
         for I in ti.grouped(self.grid_m):
-            self.grid_m[I] = 0.0
-            self.grid_mv[I] = ti.Vector.zero(float, 3)
+            m = 0.0
+            mv = ti.Vector.zero(float, 3)
+            for c in range(self.copies):
+                m += self.grid_private_m[c, I[0], I[1], I[2]]
+                mv += self.grid_private[c, I[0], I[1], I[2]]
+                self.grid_private_m[c, I[0], I[1], I[2]] = 0.0
+                self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+            self.grid_m[I] = m
+            self.grid_mv[I] = mv
+
+    @ti.kernel
+    def p2g_grad_kernel(self, s: ti.i32):
+        """Backward of P2G by hand (Taichi's reverse adds atomically into every particle gradient at every node).
+        With d_i = (offset − f) Δx, G_i = ∂L/∂(mv)_i and g_i = ∂L/∂m_i:
+            ḡ = Σ_i w G_i,  ∂L/∂v += m ḡ,  ∂L/∂A = Σ_i w G_i d_iᵀ → ∂L/∂τ += k ∂L/∂A, ∂L/∂C += m ∂L/∂A
+            ∂L/∂f = Σ_i (G_i·(m v + A d_i) + m g_i) ∇_f w − Δx Aᵀ ḡ,  ∂L/∂x += ∂L/∂f / Δx
+        and F of slot s + 1 is F_model (without rigid bodies)."""
         for p in range(self.n_particles):
-            dt, dx, inv_dx = self.dt, self.dx, self.inv_dx
-            base, fx, w = self.fast._stencil(self.x[s, p])
-            if ti.static(not self.has_rigid):
-                self.F[s + 1, p] = self.F_model[p]
-            mp = self.fast.mass[p]
-            affine = (-dt * self.fast.rest_volume[p] * 4.0 * inv_dx * inv_dx) * self.tau[p] + mp * self.C[s, p]
-            momentum = mp * self.v[s, p]
+            base, fx, w, mp, k_tau, momentum, affine = self._p2g_terms(s, p)
+            dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+            g_mom = ti.Vector.zero(float, 3)
+            g_A = ti.Matrix.zero(float, 3, 3)
+            g_f = ti.Vector.zero(float, 3)
             for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                dpos = (offset - fx) * dx
-                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
-                self.grid_mv[base + offset] += weight * (momentum + affine @ dpos)
-                self.grid_m[base + offset] += weight * mp
+                dpos = (offset - fx) * self.dx
+                wx, wy, wz = w[offset[0]][0], w[offset[1]][1], w[offset[2]][2]
+                weight = wx * wy * wz
+                G = self.grid_mv.grad[base + offset]
+                g_mom += weight * G
+                g_A += (weight * G).outer_product(dpos)
+                g_weight = G.dot(momentum + affine @ dpos) + self.grid_m.grad[base + offset] * mp
+                g_f += g_weight * ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz,
+                                             wx * wy * dw[offset[2]][2]])
+            g_f -= self.dx * (affine.transpose() @ g_mom)
+            self.x.grad[s, p] += self.inv_dx * g_f
+            self.v.grad[s, p] += mp * g_mom
+            self.C.grad[s, p] += mp * g_A
+            self.tau.grad[p] += k_tau * g_A
+            if ti.static(not self.has_rigid):
+                self.F_model.grad[p] += self.F.grad[s + 1, p]
+
+    @ti.ad.grad_replaced
+    def p2g(self, s: int):
+        self.p2g_kernel(s)
+
+    @ti.ad.grad_for(p2g)
+    def p2g_grad(self, s: int):
+        self.p2g_grad_kernel(s)
 
     @ti.kernel
     def grid_update(self, s: ti.i32):
@@ -437,11 +514,18 @@ class DiffMPMSolver:
     @ti.kernel
     def g2p_kernel(self, s: ti.i32):
         """Gather v and C, advect, project out of statics and walls (mpm.py, G2P); keeps the gather's result
-        in x_pre, v_pre, C_pre for the backward."""
+        in x_pre, v_pre, C_pre and, with the grid, in the stores for the backward (restore)."""
+        for I in ti.grouped(self.grid_m):
+            self.store_m[s, I] = self.grid_m[I]
+            self.store_mv[s, I] = self.grid_mv[I]
+            self.store_v[s, I] = self.grid_v[I]
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
             self.x_pre[p], self.v_pre[p], self.C_pre[p] = xp, new_v, new_C
+            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v
+            if ti.static(self.has_rigid):
+                self.store_C_pre[s, p] = new_C
             xp, new_v = self._project(xp, new_v)
             self._store_g2p(p, s, xp, new_v, new_C)
 
@@ -500,7 +584,8 @@ class DiffMPMSolver:
                 i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
                 self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
                 grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
-                gf += g_i.dot(h) * grad_w - (k4 * weight) * (gC.transpose() @ g_i)
+                gf += g_i.dot(h) * grad_w
+            gf -= k4 * (gC.transpose() @ self.v_pre[p])  # Σ_i w g_i = v
             self.x.grad[s, p] += gx + self.inv_dx * gf
 
     @ti.ad.grad_replaced
@@ -636,15 +721,21 @@ class DiffMPMSolver:
         self._forward(s, True)
 
     def _forward(self, s: int, whole: bool):
-        """The substep's forward kernels; without `whole`, only those whose results the backward reads (the
-        slot s + 1 writes of the rigid projection and the tool motion are left out)."""
+        """The substep's forward kernels. Without `whole` (before its backward), only what the backward reads
+        and the forward did not keep: the SVD and the stress, the grid and the gather restored from the stores,
+        and with rigid bodies the projection's body sums (not the slot s + 1 writes)."""
         if self.svd_models:
             self.svd(s)  # SVD of F_trial
         for k in range(len(self.models)):
             self.stress(s, k)  # constitutive models
-        self.p2g(s)  # P2G
-        self.grid_update(s)  # grid update
-        self.g2p(s)  # G2P
+        if whole:
+            self.p2g(s)  # P2G
+            self.grid_update(s)  # grid update
+            self.g2p(s)  # G2P
+        else:
+            self.restore(s)
+            if self.rigid is not None:
+                self.g2p_project(s)
         if self.rigid is not None:
             for kernel in self._rigid_kernels():  # rigid projection
                 kernel()
@@ -653,10 +744,9 @@ class DiffMPMSolver:
 
     @ti.ad.grad_for(substep)
     def substep_grad(self, s: int):
-        """Add the gradients of slot s from those of slot s + 1: re-run the substep's forward kernels (the grid
-        and the other intermediates are not stored), then their gradients in reverse order."""
+        """Add the gradients of slot s from those of slot s + 1: restore or re-run the substep's intermediates,
+        then the gradients of its kernels in reverse order."""
         self._forward(s, False)
-        self.clear_substep_grads()
         if self.rigid is not None:
             self.rigid_write.grad(s)
             for kernel in reversed(self._rigid_kernels()):
@@ -666,7 +756,7 @@ class DiffMPMSolver:
                     kernel.grad()
         self.g2p_grad(s)
         self.grid_update.grad(s)
-        self.p2g.grad(s)
+        self.p2g_grad(s)
         for k in reversed(range(len(self.models))):
             self.stress.grad(s, k)
         if self.svd_models:
