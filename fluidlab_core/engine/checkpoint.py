@@ -26,6 +26,9 @@ from fluidlab_core.engine.tools import clip_twists
 from fluidlab_core.losses import StepState
 
 
+LOSS_GRAD_CACHE_BYTES = 256e6  # host memory for loss gradients kept from the forward pass (see rollout_with_grad)
+
+
 class NonFiniteGradientError(FloatingPointError):
     """A gradient became NaN or infinite during the backward pass."""
 
@@ -131,15 +134,24 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
     def state_at(slot, step):
         return StepState(step, step * dt, *diff.read_step(slot))
 
+    # the loss gradients of the last segment's steps, taken when its forward reads the state for the loss value,
+    # so that its backward need not read the state again (as long as they fit LOSS_GRAD_CACHE_BYTES)
+    loss_grads = {}
+
     def run_segment(seg, first_pass, phase):
         steps = seg_steps(seg)
+        cache_bytes = 0
         diff.write_twists(applied[steps.start:steps.stop], sub)
         for j, g in enumerate(steps):
             s0 = j * sub
             for i in range(sub):
                 diff.substep(s0 + i)
             if first_pass and loss.active(g + 1, n_steps):
-                step_losses[g], _ = loss(state_at(s0 + sub, g + 1), n_steps, grad=False)
+                keep = grad and seg == n_seg - 1 and cache_bytes < LOSS_GRAD_CACHE_BYTES
+                step_losses[g], grads = loss(state_at(s0 + sub, g + 1), n_steps, grad=keep)
+                if keep:
+                    loss_grads[g] = grads
+                    cache_bytes += sum(a.nbytes for a in grads.values())
             if progress:
                 progress(phase, g + 1, n_steps)
 
@@ -163,7 +175,7 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
                         "forward_seconds": forward_seconds}
         if grad:
             _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at,
-                      run_segment, progress)
+                      run_segment, progress, loss_grads)
             result.stats["backward_seconds"] = time.perf_counter() - t0 - forward_seconds
             result.stats["checkpoint_bytes"] = store.nbytes
         final["step"] = sim.step_count + n_steps
@@ -174,7 +186,7 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
 
 
 def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at, run_segment,
-              progress):
+              progress, loss_grads):
     n_steps, sub, dt = len(applied), sim.substeps, sim.dt
     n_tools = len(sim.tools.specs)
     grad_actions = np.zeros_like(applied)
@@ -191,7 +203,7 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
             g = steps[j]
             s0, s1 = j * sub, (j + 1) * sub
             if loss.active(g + 1, n_steps):
-                _, grads = loss(state_at(s1, g + 1), n_steps, grad=True)
+                grads = loss_grads.pop(g) if g in loss_grads else loss(state_at(s1, g + 1), n_steps, grad=True)[1]
                 for key, value in grads.items():
                     if not np.all(np.isfinite(value)):
                         raise NonFiniteGradientError(f"the loss gradient with respect to {key} is NaN or infinite "

@@ -194,18 +194,28 @@ class DiffMPMSolver:
             out["tool_position"], out["tool_rotation"] = p.astype(np.float64), R.astype(np.float64)
         return out
 
+    @ti.kernel
+    def _add_xv_grad(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                self.x.grad[s, p][i] += x[p, i]
+                self.v.grad[s, p][i] += v[p, i]
+
     def add_state_grad(self, s: int, grad: dict):
         """Add gradients {x, v, C, F, tool_position, tool_rotation} (any subset) into slot s."""
         n, r = self.n_particles, self.np_real
-        arrays = []
-        for key, shape in (("x", (n, 3)), ("v", (n, 3)), ("C", (n, 3, 3)), ("F", (n, 3, 3))):
+
+        def array(key, shape):
             g = grad.get(key)
-            arrays.append(np.zeros(shape, r) if g is None else np.ascontiguousarray(g, dtype=r))
-        self._add_slot_grad(s, *arrays)
+            return np.zeros(shape, r) if g is None else np.ascontiguousarray(g, dtype=r)
+
+        if grad.get("C") is not None or grad.get("F") is not None:
+            self._add_slot_grad(s, array("x", (n, 3)), array("v", (n, 3)), array("C", (n, 3, 3)), array("F", (n, 3, 3)))
+        elif grad.get("x") is not None or grad.get("v") is not None:  # the usual loss: positions and velocities
+            self._add_xv_grad(s, array("x", (n, 3)), array("v", (n, 3)))
         if self.n_tools and (grad.get("tool_position") is not None or grad.get("tool_rotation") is not None):
-            gp = np.zeros((self.n_tools, 3)) if grad.get("tool_position") is None else grad["tool_position"]
-            gR = np.zeros((self.n_tools, 3, 3)) if grad.get("tool_rotation") is None else grad["tool_rotation"]
-            self._add_tool_grad(s, np.ascontiguousarray(gp, dtype=r), np.ascontiguousarray(gR, dtype=r))
+            self._add_tool_grad(s, array("tool_position", (self.n_tools, 3)),
+                                array("tool_rotation", (self.n_tools, 3, 3)))
 
     @ti.kernel
     def _write_tool_pose(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
