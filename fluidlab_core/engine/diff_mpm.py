@@ -1,29 +1,41 @@
 """The differentiable MLS-MPM substep: the forward solver's physics (mpm.py) on time-indexed particle state,
-with gradients by Taichi's reverse-mode autodiff and a hand-written SVD backward (svd.py).
+with gradients by Taichi's reverse-mode autodiff where it is cheap and by hand where it is not (the SVD, the
+P2G scatter and the G2P gather).
 
 State of substep s lives in slot s of a buffer of `n_slots` (one checkpoint segment): x[s, p], v[s, p],
 C[s, p], F[s, p] and each tool's pose and held twist (tool_p, tool_R, tool_v, tool_w)[k, s]. A substep
 reads slot s and writes slot s + 1, as kernels in physical order:
 
-    F_trial = (I + Δt C) F                                 # strain update
-    U, Σ, V = svd(F_trial)                                 # only for models that need it; backward by hand
-    stress: (F_new, τ) = model(F_trial, C, U, Σ, V), one kernel per model
-    P2G:  scatter m and m v + A (x_i − x_p) (atomic adds)
-    grid: v_i = (mv)_i / m_i + Δt g, then statics, tools at (tool_p, tool_R)[s], walls
-    G2P:  v, C, x ← x + Δt v, projection out of statics and walls
+    U, Σ, V = svd((I + Δt C) F)            only for models that need it; backward by hand (svd.py), carried on
+                                           to C and F by hand
+    stress: (F_new, τ) = model((I + Δt C) F, C, U, Σ, V); autodiff, one kernel per model
+    P2G:  scatter m and m v + A (x_i − x_p); backward by hand (a gather, p2g_grad_kernel)
+    grid: v_i = (mv)_i / m_i + Δt g, then statics, tools at (tool_p, tool_R)[s], walls; then the tools move,
+          p ← p + Δt v_tool, R ← exp([ω]× Δt) R; autodiff
+    G2P:  gather v, C; x ← x + Δt v; backward by hand (g2p_gather_grad). Then the projection out of statics
+          and walls; autodiff (g2p_project)
     rigid (when the scene has rigid bodies): shape matching as in rigid.py, in six kernels, the polar
-          decomposition R = U Vᵀ of A/|A| by the same SVD backward
-    tools: p ← p + Δt v_tool, R ← exp([ω]× Δt) R
+          decomposition R = U Vᵀ of A/|A| by the same SVD backward; autodiff
 
-Everything that is not time-indexed (grid, SVD factors, body sums) is recomputed by the backward of a
-substep, which first re-runs the substep's forward kernels and then their gradients in reverse order
-(`substep` / `substep_grad`). Gradients accumulate in the `.grad` of the slot fields; the checkpointing
-driver (checkpoint.py) seeds them from the loss and hands them across segment boundaries.
+Scatters (P2G forward, the gather's backward) go into one grid copy per CPU thread, summed afterwards, as in
+the fast solver: no float atomics, and sums in a fixed order, so that gradients are the same run to run. On
+a GPU (no copies) they are atomic.
 
-Differences from the forward solver (mpm.py), all within floating-point round-off of it: the scatter is
-atomic (the CPU forward solver scatters into private per-thread grids, which autodiff cannot reverse), the
-polar decomposition of the rigid projection goes through the SVD, and tool poses advance in the working
-precision instead of float64 numpy.
+The backward of substep s (`substep_grad`) needs the substep's intermediates. The forward keeps the grid
+before and after its update and the gather's result per substep (`store_*`, 7 reals a node and 6 a particle,
+15 with rigid bodies); the backward restores them (`restore`), re-runs only the SVD and the stress (and the
+rigid projection's body sums), then runs the gradients in reverse order. Gradients accumulate in the `.grad`
+of the slot fields; the checkpointing driver (checkpoint.py) seeds them from the loss and hands them across
+segment boundaries.
+
+The forward runs as one kernel of three parallel loops (`forward_kernel`); the backward differentiates the
+separate kernels above, built from the same functions. Launch cost shapes this: on the 2-core CPU here a
+parallel loop costs ~0.14 ms to start whatever its size and a launch ~0.05 ms more in Python (measured), so
+tiny loops (tools, bodies) are serialised and work is grouped into few kernels.
+
+Differences from the forward solver (mpm.py), all within floating-point round-off of it: the polar
+decomposition of the rigid projection goes through the SVD, and tool poses advance in the working precision
+instead of float64 numpy.
 """
 
 import numpy as np
@@ -84,10 +96,13 @@ class DiffMPMSolver:
         if fast.rigid is not None:  # otherwise C_pre is C of slot s + 1
             self.store_C_pre = ti.Matrix.field(3, 3, real, shape=(n_sub, n))
         # per-thread copies of a grid gradient, for scatters without atomics (as MPMSolver's P2G)
+        # (on a GPU, scatter_copies is 0: atomic scatters instead)
+        self.private = fast.scatter_copies > 0
         self.copies = max(fast.scatter_copies, 1)
         self.chunk = -(-n // self.copies)
-        self.grid_private = ti.Vector.field(3, real, shape=(self.copies,) + tuple(fast.grid_shape))
-        self.grid_private_m = ti.field(real, shape=(self.copies,) + tuple(fast.grid_shape))
+        if self.private:
+            self.grid_private = ti.Vector.field(3, real, shape=(self.copies,) + tuple(fast.grid_shape))
+            self.grid_private_m = ti.field(real, shape=(self.copies,) + tuple(fast.grid_shape))
         # tools: pose at each slot and the twist held over substep s (world frame)
         nt = max(self.n_tools, 1)
         self.tool_p = ti.Vector.field(3, real, shape=(nt, self.n_slots), needs_grad=True)  # origin (m)
@@ -336,7 +351,7 @@ class DiffMPMSolver:
 
     @ti.kernel
     def restore(self, s: ti.i32):
-        """Before substep s's backward: its grid and gather result as the forward left them (g2p_kernel), and
+        """Before substep s's backward: its grid and gather result as the forward left them (forward_kernel), and
         zero gradients for the grid and every per-substep intermediate."""
         for I in ti.grouped(self.grid_m):
             self.grid_m[I] = self.store_m[s, I]
@@ -427,33 +442,6 @@ class DiffMPMSolver:
         return base, fx, w, mp, k_tau, mp * self.v[s, p], affine
 
     @ti.kernel
-    def p2g_kernel(self, s: ti.i32):
-        """Scatter of mass and momentum with the stress τ (mpm.py, P2G) into per-thread grid copies, summed
-        into grid_m and grid_mv (no atomics, as MPMSolver on the CPU)."""
-        ti.loop_config(block_dim=1)
-        for c in range(self.copies):
-            for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
-                if ti.static(not self.has_rigid):
-                    self.F[s + 1, p] = self.F_model[p]
-                base, fx, w, mp, k_tau, momentum, affine = self._p2g_terms(s, p)
-                for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                    dpos = (offset - fx) * self.dx
-                    weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
-                    i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
-                    self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * (momentum + affine @ dpos)
-                    self.grid_private_m[c, i, j, k] = self.grid_private_m[c, i, j, k] + weight * mp
-        for I in ti.grouped(self.grid_m):
-            m = 0.0
-            mv = ti.Vector.zero(float, 3)
-            for c in range(self.copies):
-                m += self.grid_private_m[c, I[0], I[1], I[2]]
-                mv += self.grid_private[c, I[0], I[1], I[2]]
-                self.grid_private_m[c, I[0], I[1], I[2]] = 0.0
-                self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
-            self.grid_m[I] = m
-            self.grid_mv[I] = mv
-
-    @ti.kernel
     def p2g_grad_kernel(self, s: ti.i32):
         """Backward of P2G by hand (Taichi's reverse adds atomically into every particle gradient at every node).
         With d_i = (offset − f) Δx, G_i = ∂L/∂(mv)_i and g_i = ∂L/∂m_i:
@@ -484,31 +472,35 @@ class DiffMPMSolver:
             if ti.static(not self.has_rigid):
                 self.F_model.grad[p] += self.F.grad[s + 1, p]
 
-    @ti.ad.grad_replaced
-    def p2g(self, s: int):
-        self.p2g_kernel(s)
-
-    @ti.ad.grad_for(p2g)
-    def p2g_grad(self, s: int):
-        self.p2g_grad_kernel(s)
-
     @ti.kernel
     def grid_update(self, s: ti.i32):
         """Node velocities: gravity, statics, tools at their slot-s pose, walls; then the tools move to their slot
         s + 1 pose: p ← p + Δt v, R ← exp([ω]× Δt) R."""
         for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
-            self.grid_v[I] = ti.Vector.zero(float, 3)
-            if m > self.fast.mass_floor:  # see MPMSolver.mass_floor
-                vn = self.grid_mv[I] / m + self.dt * ti.Vector(self.fast.gravity)
-                xn = ti.Vector(self.fast.origin) + I * self.dx
-                for k in ti.static(range(len(self.colliders))):
-                    vn = self.colliders[k].grid(xn, vn)
-                for k in ti.static(range(self.n_tools)):
-                    vn = self.tools[k].contact_at(xn, vn, self.tool_p[k, s], self.tool_R[k, s], self.tool_v[k, s],
-                                                  self.tool_w[k, s])
-                vn = self.fast._walls(xn, vn)
-                self.grid_v[I] = vn
+            self.grid_v[I] = self._node_velocity(I, self.grid_m[I], self.grid_mv[I], s)
+        ti.loop_config(serialize=True)  # as _advance_tools: a ti.func call at top level cannot be differentiated
+        for k in range(self.n_tools):
+            self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
+            self.tool_R[k, s + 1] = rotation_from_rotvec(self.tool_w[k, s] * self.dt) @ self.tool_R[k, s]
+
+    @ti.func
+    def _node_velocity(self, I, m, mv, s):
+        """Velocity of node I from its mass and momentum: gravity, statics, tools, walls."""
+        vn = ti.Vector.zero(float, 3)
+        if m > self.fast.mass_floor:  # see MPMSolver.mass_floor
+            vn = mv / m + self.dt * ti.Vector(self.fast.gravity)
+            xn = ti.Vector(self.fast.origin) + I * self.dx
+            for k in ti.static(range(len(self.colliders))):
+                vn = self.colliders[k].grid(xn, vn)
+            for k in ti.static(range(self.n_tools)):
+                vn = self.tools[k].contact_at(xn, vn, self.tool_p[k, s], self.tool_R[k, s], self.tool_v[k, s],
+                                              self.tool_w[k, s])
+            vn = self.fast._walls(xn, vn)
+        return vn
+
+    @ti.func
+    def _advance_tools(self, s):
+        """p ← p + Δt v, R ← exp([ω]× Δt) R (the forward kernel's; grid_update repeats it inline)."""
         ti.loop_config(serialize=True)
         for k in range(self.n_tools):
             self.tool_p[k, s + 1] = self.tool_p[k, s] + self.dt * self.tool_v[k, s]
@@ -521,14 +513,68 @@ class DiffMPMSolver:
             xp, new_v = self.colliders[k].particle(xp, new_v)
         return self.fast._clamp_to_walls(xp, new_v)
 
+    @ti.func
+    def _scatter_particle(self, c, s, p):
+        """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
+        atomically into the grid)."""
+        Cp = self.C[s, p]
+        Fp = self._strain(s, p)
+        tau = ti.Matrix.zero(float, 3, 3)
+        prm = self.fast.material_params[self.fast.material[p]]
+        for k in ti.static(range(len(self.fast.models))):
+            if self.fast.model[p] == k:
+                Fp, tau = self.fast.models[k](Fp, Cp, prm)
+        if ti.static(self.has_rigid):
+            self.F_model[p] = Fp
+        else:
+            self.F[s + 1, p] = Fp
+        base, fx, w = self.fast._stencil(self.x[s, p])
+        mp = self.fast.mass[p]
+        affine = (-self.dt * self.fast.rest_volume[p] * 4.0 * self.inv_dx * self.inv_dx) * tau + mp * Cp
+        momentum = mp * self.v[s, p]
+        for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            dpos = (offset - fx) * self.dx
+            weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+            if ti.static(self.private):
+                i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+                self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * (momentum + affine @ dpos)
+                self.grid_private_m[c, i, j, k] = self.grid_private_m[c, i, j, k] + weight * mp
+            else:
+                self.grid_mv[base + offset] += weight * (momentum + affine @ dpos)
+                self.grid_m[base + offset] += weight * mp
+
     @ti.kernel
-    def g2p_kernel(self, s: ti.i32):
-        """Gather v and C, advect, project out of statics and walls (mpm.py, G2P); keeps the gather's result
-        in x_pre, v_pre, C_pre and, with the grid, in the stores for the backward (restore)."""
+    def forward_kernel(self, s: ti.i32):
+        """One substep's forward in three parallel loops (a parallel launch is the main cost at small sizes):
+        particles (strain, stress, P2G), nodes (sum of the grid copies, grid update, the stores), then, after
+        the tools move, particles again (G2P gather, projection). The backward differentiates the separate
+        kernels (stress, grid_update, g2p_project) and the hand-written ones, on the same functions."""
+        if ti.static(self.private):
+            ti.loop_config(block_dim=1)
+            for c in range(self.copies):
+                for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                    self._scatter_particle(c, s, p)
+        else:
+            for I in ti.grouped(self.grid_m):
+                self.grid_m[I] = 0.0
+                self.grid_mv[I] = ti.Vector.zero(float, 3)
+            for p in range(self.n_particles):
+                self._scatter_particle(0, s, p)
         for I in ti.grouped(self.grid_m):
-            self.store_m[s, I] = self.grid_m[I]
-            self.store_mv[s, I] = self.grid_mv[I]
-            self.store_v[s, I] = self.grid_v[I]
+            m = 0.0
+            mv = ti.Vector.zero(float, 3)
+            if ti.static(self.private):
+                for c in range(self.copies):
+                    m += self.grid_private_m[c, I[0], I[1], I[2]]
+                    mv += self.grid_private[c, I[0], I[1], I[2]]
+                    self.grid_private_m[c, I[0], I[1], I[2]] = 0.0
+                    self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+            else:
+                m, mv = self.grid_m[I], self.grid_mv[I]
+            vn = self._node_velocity(I, m, mv, s)
+            self.grid_v[I] = vn
+            self.store_m[s, I], self.store_mv[s, I], self.store_v[s, I] = m, mv, vn
+        self._advance_tools(s)
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
@@ -564,16 +610,20 @@ class DiffMPMSolver:
             ∂L/∂f   += Σ_i [g_i·(ḡv + (4/Δx) Ḡ d) ∇_f w − (4/Δx) w Ḡᵀ g_i]
             ∂L/∂x   += ∂L/∂x_pre + ∂L/∂f / Δx
         with the quadratic B-spline derivatives w₀' = f − 1.5, w₁' = −2(f − 1), w₂' = f − 0.5."""
-        ti.loop_config(block_dim=1)
-        for c in range(self.copies):
-            for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
-                self._gather_grad_particle(c, s, p)
-        for I in ti.grouped(self.grid_m):
-            g = ti.Vector.zero(float, 3)
+        if ti.static(self.private):
+            ti.loop_config(block_dim=1)
             for c in range(self.copies):
-                g += self.grid_private[c, I[0], I[1], I[2]]
-                self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
-            self.grid_v.grad[I] += g
+                for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                    self._gather_grad_particle(c, s, p)
+            for I in ti.grouped(self.grid_m):
+                g = ti.Vector.zero(float, 3)
+                for c in range(self.copies):
+                    g += self.grid_private[c, I[0], I[1], I[2]]
+                    self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+                self.grid_v.grad[I] += g
+        else:
+            for p in range(self.n_particles):
+                self._gather_grad_particle(0, s, p)
 
     @ti.func
     def _gather_grad_particle(self, c, s, p):
@@ -591,18 +641,16 @@ class DiffMPMSolver:
                 weight = wx * wy * wz
                 g_i = self.grid_v[base + offset]
                 h = gv + k4 * (gC @ d)
-                i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
-                self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
+                if ti.static(self.private):
+                    i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+                    self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
+                else:
+                    self.grid_v.grad[base + offset] += weight * h
                 grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
                 gf += g_i.dot(h) * grad_w
             gf -= k4 * (gC.transpose() @ self.v_pre[p])  # Σ_i w g_i = v
             self.x.grad[s, p] += gx + self.inv_dx * gf
 
-    @ti.ad.grad_replaced
-    def g2p(self, s: int):
-        self.g2p_kernel(s)
-
-    @ti.ad.grad_for(g2p)
     def g2p_grad(self, s: int):
         self.g2p_project.grad(s)
         self.g2p_gather_grad(s)
@@ -731,18 +779,16 @@ class DiffMPMSolver:
         self._forward(s, True)
 
     def _forward(self, s: int, whole: bool):
-        """The substep's forward kernels. Without `whole` (before its backward), only what the backward reads
-        and the forward did not keep: the SVD and the stress, the grid and the gather restored from the stores,
-        and with rigid bodies the projection's body sums (not the slot s + 1 writes)."""
-        if self.svd_models:
-            self.svd(s)  # SVD of F_trial
-        for k in range(len(self.models)):
-            self.stress(s, k)  # constitutive models
+        """The substep's forward. Without `whole` (before its backward), only what the backward reads and the
+        forward did not keep: the SVD and the stress, the grid and the gather restored from the stores, and
+        with rigid bodies the projection's body sums (not the slot s + 1 writes)."""
         if whole:
-            self.p2g(s)  # P2G
-            self.grid_update(s)  # grid update
-            self.g2p(s)  # G2P
+            self.forward_kernel(s)
         else:
+            if self.svd_models:
+                self.svd(s)  # SVD of F_trial
+            for k in range(len(self.models)):
+                self.stress(s, k)  # constitutive models
             self.restore(s)
             if self.rigid is not None:
                 self.g2p_project(s)
@@ -766,7 +812,7 @@ class DiffMPMSolver:
                     kernel.grad()
         self.g2p_grad(s)
         self.grid_update.grad(s)
-        self.p2g_grad(s)
+        self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.models))):
             self.stress.grad(s, k)
         if self.svd_models:
