@@ -188,6 +188,19 @@ def test_nonfinite_loss_gradient_names_the_step(setup):
         sim.rollout(actions, losses.Callable(bad, steps=[4]), grad=True)
 
 
+def test_nonfinite_dynamics_gradient_names_the_step(setup):
+    """A finite loss gradient that overflows in the backward of the dynamics is reported at the step where it
+    did, with the fields, although the watch runs once per segment."""
+    sim, loss, actions, start, result = setup
+    sim.set_state(start)
+
+    def huge(state, grad):
+        return 0.0, ({"v": np.full_like(state.v, 1e308)} if grad else None)
+
+    with pytest.raises(NonFiniteGradientError, match=r"NaN or infinite in \w.* at step 3 \(t = 0.003 s\)"):
+        sim.rollout(actions, losses.Callable(huge, steps=[4]), grad=True, segment_steps=N_STEPS)
+
+
 def test_rollout_refusals(setup):
     sim, loss, actions, start, result = setup
     sim.set_state(start)

@@ -190,6 +190,7 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
     n_steps, sub, dt = len(applied), sim.substeps, sim.dt
     n_tools = len(sim.tools.specs)
     grad_actions = np.zeros_like(applied)
+    mask = np.array([spec.action_mask for spec in sim.tools.specs], dtype=np.float64).reshape(n_tools, 6)
     carry = None
     for seg in reversed(range(n_seg)):
         if seg != n_seg - 1:  # the last segment is still in the buffer from the forward pass
@@ -211,22 +212,31 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
                 diff.add_state_grad(s1, grads)
             for i in reversed(range(sub)):
                 diff.substep_grad(s0 + i)
-            tg, bad = diff.step_grad_end(s0, s1)
-            if n_tools:
+            if n_tools and clipped_dims[g].any():
+                # v = (b − p)/dt on clipped components: the gradient goes to p at the step's start, before the
+                # backward goes on past it
+                tg, bad = diff.step_grad_end(s0, s1)
+                if bad:
+                    _raise_nonfinite(bad, g, dt)
                 cl = clipped_dims[g]
-                if cl.any():
-                    # v = (b − p)/dt on clipped components: the gradient goes to p at the step's start
-                    dp = np.where(cl, -tg[:, :3] / dt, 0.0)
-                    diff.add_state_grad(s0, {"tool_position": dp})
-                    tg[:, :3] = np.where(cl, 0.0, tg[:, :3])
-                grad_actions[g] = tg * np.array([s.action_mask for s in sim.tools.specs], dtype=np.float64)
-            if bad:
-                raise NonFiniteGradientError(
-                    f"the gradient became NaN or infinite in {', '.join(bad)} at step {g} (t = {g * dt:.4g} s), "
-                    f"going backward from step {g + 1}. Common causes: an unstable step (more substeps), particles "
-                    f"at a kink of the contact or plasticity laws, or a NaN in the loss gradient")
+                dp = np.where(cl, -tg[:, :3] / dt, 0.0)
+                diff.add_state_grad(s0, {"tool_position": dp})
+                tg[:, :3] = np.where(cl, 0.0, tg[:, :3])
+                grad_actions[g] = tg * mask
             if progress:
                 progress("backward", n_steps - g, n_steps)
+        # the other steps' twist gradients, and the NaN watch, once per segment: a NaN or infinity spreads back
+        # to the segment's first slot, and the slots still hold every step's gradient to find where it began
+        if n_tools:
+            twist = diff.twist_grads(len(steps), sub)
+            for j, g in enumerate(steps):
+                if not clipped_dims[g].any():
+                    grad_actions[g] = twist[j] * mask
+        if diff.nonfinite_grad_fields(0) or not np.all(np.isfinite(grad_actions[steps.start:steps.stop])):
+            for j in reversed(range(len(steps))):
+                bad = diff.nonfinite_grad_fields(j * sub)
+                if bad or not np.all(np.isfinite(grad_actions[steps[j]])):
+                    _raise_nonfinite(bad or ["tool twists"], steps[j], dt)
         carry = diff.read_state(0, grad=True)
     start = store.get(0)
     result.grad_actions = grad_actions
@@ -238,6 +248,13 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
     else:
         result.grad_tool_position = np.zeros((0, 3))
         result.grad_tool_rotation = np.zeros((0, 3))
+
+
+def _raise_nonfinite(fields, g: int, dt: float):
+    raise NonFiniteGradientError(
+        f"the gradient became NaN or infinite in {', '.join(fields)} at step {g} (t = {g * dt:.4g} s), going backward "
+        f"from step {g + 1}. Common causes: an unstable step (more substeps), particles at a kink of the contact or "
+        f"plasticity laws, or a NaN in the loss gradient")
 
 
 def _clip_all(sim, start: dict, velocities: np.ndarray):

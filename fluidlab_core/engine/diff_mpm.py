@@ -330,6 +330,28 @@ class DiffMPMSolver:
         return out[:-1].reshape(self.n_tools, 6).astype(np.float64), bad
 
     @ti.kernel
+    def _twist_grads(self, substeps: ti.i32, out: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
+        for j, k in ti.ndrange(out.shape[0], self.n_tools):
+            for i in ti.static(range(6)):
+                out[j, k, i] = 0.0
+            for s in range(j * substeps, (j + 1) * substeps):
+                for i in ti.static(range(3)):
+                    out[j, k, i] += self.tool_v.grad[k, s][i]
+                    out[j, k, 3 + i] += self.tool_w.grad[k, s][i]
+
+    def twist_grads(self, n_steps: int, substeps: int) -> np.ndarray:
+        """(n_steps, n_tools, 6) gradients of the twists held over each step of the buffer (one launch)."""
+        out = np.zeros((n_steps, self.n_tools, 6), self.np_real)
+        if self.n_tools and n_steps:
+            self._twist_grads(substeps, out)
+        return out.astype(np.float64)
+
+    def nonfinite_grad_fields(self, s: int) -> list[str]:
+        """Names of the slot-s gradient fields holding a NaN or infinity (one launch)."""
+        return self.step_grad_end(s, s)[1]
+
+    @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32):
         for p in range(self.n_particles):
             self.x[dst, p] = self.x[src, p]
