@@ -3,7 +3,7 @@
 Scene ("small"): a water block in a box stirred by a soft-contact stick, 12³ grid, float32 on the CPU.
 Each horizon runs in a child process, so that its peak resident memory (ru_maxrss) is its own:
   forward     the fast solver (`rollout(grad=False)`)
-  diff fwd    the differentiable solver's forward only (atomic scatter, time-indexed state)
+  diff fwd    the differentiable solver's forward only (time-indexed state, what the backward needs kept)
   fwd + bwd   `rollout(grad=True)`: checkpointed forward, then each segment re-run and reversed
 Ratios are against the fast forward run in the same process (warm kernels: each is run once first).
 

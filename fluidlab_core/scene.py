@@ -262,8 +262,9 @@ class Scene:
 
         requires_grad: also allocate the differentiable solver, for `Simulator.rollout(..., grad=True)`. Its
         buffer holds the per-substep state of one checkpoint segment: as many steps as fit in `grad_memory`
-        bytes, at most `grad_max_steps` (segments are about sqrt(N) steps for an N-step rollout, so 200 steps
-        serve horizons up to 40,000 steps at sqrt(N) segments, and any longer one with more segments)."""
+        bytes, at most `grad_max_steps`. Rollouts longer than the buffer are split into equal segments as long
+        as it allows (checkpoint.plan_segments): with 200 steps, a 10,000-step rollout keeps 50 segment starts
+        and recomputes 98 % of its steps once."""
         self.check()
         from fluidlab_core import runtime
         from fluidlab_core.engine import statics
@@ -296,6 +297,10 @@ class Scene:
             import os
 
             copies = config.cpu_threads or os.cpu_count() or 1
+            # FLUIDLAB_SCATTER_COPIES=0 scatters atomically as on a GPU (tests use it to run the GPU code path;
+            # on a many-core CPU fewer copies than threads may be faster, see docs/engine.md)
+            if os.environ.get("FLUIDLAB_SCATTER_COPIES"):
+                copies = int(os.environ["FLUIDLAB_SCATTER_COPIES"])
         solver = MPMSolver(spec, real, scatter_copies=copies)
         diff = None
         if requires_grad:
