@@ -7,7 +7,9 @@ Each horizon runs in a child process, so that its peak resident memory (ru_maxrs
   fwd + bwd   `rollout(grad=True)`: checkpointed forward, then each segment re-run and reversed
 Ratios are against the fast forward run in the same process (warm kernels: each is run once first).
 
-    python bench/bench_grad.py [--horizons 100 1000 10000] [--out bench/results/grad_cpu.txt]
+    python bench/bench_grad.py [--horizons 100 1000 10000] [--grid 12] [--out bench/results/grad_cpu.txt]
+
+--grid sets the grid resolution (particles grow as its cube, substeps in proportion for stability).
 """
 import argparse
 import json
@@ -24,12 +26,12 @@ import fluidlab_core as fl
 from fluidlab_core import losses, shapes as S, materials as M
 from fluidlab_core.engine.checkpoint import rollout_with_grad
 fl.init(arch="cpu", precision="f32", seed=0)
-N = int(sys.argv[1])
-sc = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=12, dt=4e-4, substeps=2)
+N, G, MEMORY = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+sc = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=G, dt=4e-4, substeps=2 * G // 12)
 water = sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.1, 0.1, 0.03)), M.WATER, name="water")
 sc.add_tool(S.Cylinder((0, 0, 0), 0.006, 0.06), pose=(0.05, 0.05, 0.04, 0, 0, 0, 1), softness=500.0,
             workspace=((0.02, 0.02, 0.02), (0.08, 0.08, 0.08)), action_mask=(1, 1, 0, 0, 0, 0))
-sim = sc.build(requires_grad=True, grad_max_steps=200)
+sim = sc.build(requires_grad=True, grad_max_steps=200, grad_memory=MEMORY)
 loss = losses.CenterOfMassDistance((0.07, 0.05, 0.01), particles=sim.handle("water").slice, steps="all")
 t = np.arange(N) * sim.dt
 actions = np.stack([0.05 * np.cos(20 * np.pi * t), 0.05 * np.sin(20 * np.pi * t)] + [0 * t] * 4, axis=1)
@@ -52,6 +54,8 @@ print(json.dumps({"N": N, "particles": sim.n_particles, "forward_s": fwd, "diff_
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--horizons", type=int, nargs="+", default=[100, 1000, 10000])
+    ap.add_argument("--grid", type=int, default=12, help="grid cells across the 10 cm box (a multiple of 12)")
+    ap.add_argument("--grad-memory", type=float, default=512e6, help="bytes for the gradient buffer (build)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -59,12 +63,15 @@ def main():
     rows = []
     for n in args.horizons:
         print(f"horizon {n} steps ...", file=sys.stderr, flush=True)
-        out = subprocess.run([sys.executable, "-c", CHILD, str(n)], capture_output=True, text=True, env=env)
+        out = subprocess.run([sys.executable, "-c", CHILD, str(n), str(args.grid), str(args.grad_memory)], capture_output=True, text=True,
+                             env=env)
         if out.returncode != 0:
             raise SystemExit(f"horizon {n} failed:\n{out.stderr[-3000:]}")
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    lines = [f"gradient benchmark: {rows[0]['particles']} particles, 12^3 grid, 2 substeps of 0.2 ms per step, float32, CPU "
-             f"({os.cpu_count()} cores), {time.strftime('%Y-%m-%d')}",
+    sub = 2 * args.grid // 12
+    lines = [f"gradient benchmark: {rows[0]['particles']} particles, {args.grid}^3 grid, {sub} substeps of "
+             f"{0.4 / sub:.2g} ms per step, float32, CPU "
+             f"({os.cpu_count()} cores), gradient buffer {args.grad_memory / 1e6:.0f} MB, {time.strftime('%Y-%m-%d')}",
              "| steps | segments x steps | fast fwd (s) | diff fwd (s) | fwd+bwd (s) | fwd+bwd / fast fwd | "
              "fwd+bwd / diff fwd | checkpoints (MB) | peak RSS (MB) |",
              "|---|---|---|---|---|---|---|---|---|"]
