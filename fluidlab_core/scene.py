@@ -309,9 +309,9 @@ class Scene:
             real_bytes = np.dtype(runtime.numpy_real()).itemsize
             # x, v, C, F and their gradients per particle and slot, plus the tools' slot fields, plus what the
             # forward keeps for the backward per substep (DiffMPMSolver: the grid before and after its update, 7
-            # reals a node, and the gather's result, 6 reals a particle, 15 with rigid bodies)
+            # reals a node, and the stress and the gather's result, 15 reals a particle, 24 with rigid bodies)
             slot_bytes = 2 * real_bytes * (24 * len(x) + 24 * max(len(tools), 1))
-            slot_bytes += real_bytes * (7 * int(np.prod(solver.grid_shape)) + (15 if solver.rigid else 6) * len(x))
+            slot_bytes += real_bytes * (7 * int(np.prod(solver.grid_shape)) + (24 if solver.rigid else 15) * len(x))
             steps = int(min(grad_max_steps, (grad_memory // slot_bytes - 1) // self.substeps))
             if steps < 1:
                 raise ValueError(f"grad_memory={grad_memory:.3g} bytes holds no whole step of {self.substeps} substeps "

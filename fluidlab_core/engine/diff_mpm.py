@@ -22,9 +22,9 @@ the fast solver: no float atomics, and sums in a fixed order, so that gradients 
 a GPU (no copies) they are atomic.
 
 The backward of substep s (`substep_grad`) needs the substep's intermediates. The forward keeps the grid
-before and after its update and the gather's result per substep (`store_*`, 7 reals a node and 6 a particle,
-15 with rigid bodies); the backward restores them (`restore`), re-runs only the SVD and the stress (and the
-rigid projection's body sums), then runs the gradients in reverse order. Gradients accumulate in the `.grad`
+before and after its update, the stress τ and the gather's result per substep (`store_*`, 7 reals a node and
+15 a particle, 24 with rigid bodies); the backward restores them (`restore`), re-runs only the SVD (and with
+rigid bodies the stress and the projection's body sums), then runs the gradients in reverse order. Gradients accumulate in the `.grad`
 of the slot fields; the checkpointing driver (checkpoint.py) seeds them from the loss and hands them across
 segment boundaries.
 
@@ -93,6 +93,7 @@ class DiffMPMSolver:
         self.store_v = ti.Vector.field(3, real, shape=(n_sub,) + tuple(fast.grid_shape))
         self.store_x_pre = ti.Vector.field(3, real, shape=(n_sub, n))
         self.store_v_pre = ti.Vector.field(3, real, shape=(n_sub, n))
+        self.store_tau = ti.Matrix.field(3, 3, real, shape=(n_sub, n))  # the stress, for P2G's backward
         if fast.rigid is not None:  # otherwise C_pre is C of slot s + 1
             self.store_C_pre = ti.Matrix.field(3, 3, real, shape=(n_sub, n))
         # per-thread copies of a grid gradient, for scatters without atomics (as MPMSolver's P2G)
@@ -383,6 +384,7 @@ class DiffMPMSolver:
             self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
             self.grid_v.grad[I] = ti.Vector.zero(float, 3)
         for p in range(self.n_particles):
+            self.tau[p] = self.store_tau[s, p]
             self.x_pre[p] = self.store_x_pre[s, p]
             self.v_pre[p] = self.store_v_pre[s, p]
             if ti.static(self.has_rigid):
@@ -550,6 +552,7 @@ class DiffMPMSolver:
             self.F_model[p] = Fp
         else:
             self.F[s + 1, p] = Fp
+        self.store_tau[s, p] = tau
         base, fx, w = self.fast._stencil(self.x[s, p])
         mp = self.fast.mass[p]
         affine = (-self.dt * self.fast.rest_volume[p] * 4.0 * self.inv_dx * self.inv_dx) * tau + mp * Cp
@@ -802,15 +805,17 @@ class DiffMPMSolver:
 
     def _forward(self, s: int, whole: bool):
         """The substep's forward. Without `whole` (before its backward), only what the backward reads and the
-        forward did not keep: the SVD and the stress, the grid and the gather restored from the stores, and
-        with rigid bodies the projection's body sums (not the slot s + 1 writes)."""
+        forward did not keep: the SVD (the stress's backward reads it), the stress's F_new only with rigid
+        bodies (the rigid projection reads it), the stress, grid and gather restored from the stores, and with
+        rigid bodies the projection's body sums (not the slot s + 1 writes)."""
         if whole:
             self.forward_kernel(s)
         else:
             if self.svd_models:
                 self.svd(s)  # SVD of F_trial
-            for k in range(len(self.models)):
-                self.stress(s, k)  # constitutive models
+            if self.rigid is not None:
+                for k in range(len(self.models)):
+                    self.stress(s, k)  # constitutive models
             self.restore(s)
             if self.rigid is not None:
                 self.g2p_project(s)
