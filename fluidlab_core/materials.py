@@ -26,7 +26,7 @@ Users define their own materials by constructing these classes, e.g.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar
 
 STRESS_UNIT_PA = 1000.0  # 1 paper stress unit in Pa (see the module docstring)
