@@ -14,7 +14,6 @@ Ratios are against the fast forward run in the same process (warm kernels: each 
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
