@@ -652,29 +652,30 @@ class DiffMPMSolver:
 
     @ti.func
     def _gather_grad_particle(self, c, s, p):
-            xp = self.x[s, p]
-            gx = self.x_pre.grad[p]
-            gv = self.v_pre.grad[p] + self.dt * gx
-            gC = self.C_pre.grad[p]
-            base, fx, w = self.fast._stencil(xp)
-            dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
-            k4 = 4.0 * self.inv_dx
-            gf = ti.Vector.zero(float, 3)
-            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-                d = offset - fx
-                wx, wy, wz = w[offset[0]][0], w[offset[1]][1], w[offset[2]][2]
-                weight = wx * wy * wz
-                g_i = self.grid_v[base + offset]
-                h = gv + k4 * (gC @ d)
-                if ti.static(self.private):
-                    i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
-                    self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
-                else:
-                    self.grid_v.grad[base + offset] += weight * h
-                grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
-                gf += g_i.dot(h) * grad_w
-            gf -= k4 * (gC.transpose() @ self.v_pre[p])  # Σ_i w g_i = v
-            self.x.grad[s, p] += gx + self.inv_dx * gf
+        """Particle p's part of g2p_gather_grad, its grid gradient into copy c (or atomically into the grid)."""
+        xp = self.x[s, p]
+        gx = self.x_pre.grad[p]
+        gv = self.v_pre.grad[p] + self.dt * gx
+        gC = self.C_pre.grad[p]
+        base, fx, w = self.fast._stencil(xp)
+        dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+        k4 = 4.0 * self.inv_dx
+        gf = ti.Vector.zero(float, 3)
+        for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+            d = offset - fx
+            wx, wy, wz = w[offset[0]][0], w[offset[1]][1], w[offset[2]][2]
+            weight = wx * wy * wz
+            g_i = self.grid_v[base + offset]
+            h = gv + k4 * (gC @ d)
+            if ti.static(self.private):
+                i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+                self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
+            else:
+                self.grid_v.grad[base + offset] += weight * h
+            grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
+            gf += g_i.dot(h) * grad_w
+        gf -= k4 * (gC.transpose() @ self.v_pre[p])  # Σ_i w g_i = v
+        self.x.grad[s, p] += gx + self.inv_dx * gf
 
     def g2p_grad(self, s: int):
         self.g2p_project.grad(s)
