@@ -603,8 +603,7 @@ class DiffMPMSolver:
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
-            self.x_pre[p], self.v_pre[p], self.C_pre[p] = xp, new_v, new_C
-            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v
+            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v  # restore() hands them to the backward
             if ti.static(self.has_rigid):
                 self.store_C_pre[s, p] = new_C
             xp, new_v = self._project(xp, new_v)
