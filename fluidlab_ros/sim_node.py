@@ -743,12 +743,16 @@ class SimNode(Node):
         try:
             for k in range(len(cmds)):
                 now, late = clock.wait()
-                if late > self.late_tick_limit:
-                    reason = f"control tick {k} was {late * 1e3:.1f} ms late (late_tick_limit {self.late_tick_limit * 1e3:g} ms)"
-                    break
                 stream.late_ticks, stream.max_late = clock.late_ticks, clock.max_late
-                if stream.stop_reason:
-                    reason = stream.stop_reason
+                late_reason = ""
+                if late > self.late_tick_limit:
+                    late_reason = (f"control tick {k} was {late * 1e3:.1f} ms late (late_tick_limit "
+                                   f"{self.late_tick_limit * 1e3:g} ms)")
+                if stream.stop_reason:  # asked for first: a stall while the request arrived does not hide it
+                    reason = stream.stop_reason + (f"; {late_reason}" if late_reason else "")
+                    break
+                if late_reason:
+                    reason = late_reason
                     break
                 if stream.to_robot:
                     age = self._joint_state_age()

@@ -83,8 +83,9 @@ class Proc:
 
 # CI shares two cores with Taichi compiles in the other test worker: a stall of the stream thread longer
 # than the node's default late_tick_limit (20 ms, meant for a real-time machine) happens there now and then,
-# up to a quarter of a second seen. The tests allow 1 s; the twin still judges every command that goes out.
-LATE_TICK_LIMIT = "late_tick_limit:=1.0"
+# up to 1.0 s seen (a stop test once ended on "tick 586 was 1004 ms late" instead of its ~/stop). The tests
+# allow 5 s, so only what a test asks for stops a stream; the twin still judges every command that goes out.
+LATE_TICK_LIMIT = "late_tick_limit:=5.0"
 
 
 def start_node(env, tmp_path: Path, *params: str, name: str = "sim_node") -> Proc:
