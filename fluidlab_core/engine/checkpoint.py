@@ -27,6 +27,7 @@ from fluidlab_core.losses import StepState
 
 
 LOSS_GRAD_CACHE_BYTES = 256e6  # host memory for loss gradients kept from the forward pass (see rollout_with_grad)
+LOSS_READ_BYTES = 64e6  # states read back per launch for the loss (read_steps), and gradients added per launch
 
 
 class NonFiniteGradientError(FloatingPointError):
@@ -131,8 +132,20 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
     def seg_steps(seg):
         return range(seg * K, min(n_steps, (seg + 1) * K))
 
-    def state_at(slot, step):
-        return StepState(step, step * dt, *diff.read_step(slot))
+    # the loss reads the states of a segment's steps once the segment has run, a chunk of steps per launch
+    per_chunk = max(1, int(LOSS_READ_BYTES // max(1, 2 * diff.n_particles * 3 * np.dtype(diff.np_real).itemsize)))
+
+    def loss_chunks(steps):
+        """The segment's steps where the loss is active, in chunks of at most per_chunk steps."""
+        active = [g for g in steps if loss.active(g + 1, n_steps)]
+        return [active[i:i + per_chunk] for i in range(0, len(active), per_chunk)]
+
+    def states_at(steps, chunk):
+        """StepState after each step g of chunk (global step numbers within `steps`, the buffered segment)."""
+        x, v, tp, tR = diff.read_steps([(g - steps.start + 1) * sub for g in chunk])
+        f64 = np.float64
+        return [StepState(g + 1, (g + 1) * dt, x[j].astype(f64), v[j].astype(f64), tp[j].astype(f64),
+                          tR[j].astype(f64)) for j, g in enumerate(chunk)]
 
     # the loss gradients of the last segment's steps, taken when its forward reads the state for the loss value,
     # so that its backward need not read the state again (as long as they fit LOSS_GRAD_CACHE_BYTES)
@@ -140,20 +153,23 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
 
     def run_segment(seg, first_pass, phase):
         steps = seg_steps(seg)
-        cache_bytes = 0
         diff.write_twists(applied[steps.start:steps.stop], sub)
         for j, g in enumerate(steps):
-            s0 = j * sub
             for i in range(sub):
-                diff.substep(s0 + i)
-            if first_pass and loss.active(g + 1, n_steps):
+                diff.substep(j * sub + i)
+            if progress:
+                progress(phase, g + 1, n_steps)
+        if not first_pass:
+            return
+        cache_bytes = 0
+        for chunk in loss_chunks(steps):
+            for state in states_at(steps, chunk):
+                g = state.step - 1
                 keep = grad and seg == n_seg - 1 and cache_bytes < LOSS_GRAD_CACHE_BYTES
-                step_losses[g], grads = loss(state_at(s0 + sub, g + 1), n_steps, grad=keep)
+                step_losses[g], grads = loss(state, n_steps, grad=keep)
                 if keep:
                     loss_grads[g] = grads
                     cache_bytes += sum(a.nbytes for a in grads.values())
-            if progress:
-                progress(phase, g + 1, n_steps)
 
     try:
         diff.write_state(0, start)
@@ -174,8 +190,8 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
         result.stats = {"segments": n_seg, "segment_steps": K, "buffer_steps": capacity,
                         "forward_seconds": forward_seconds}
         if grad:
-            _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at,
-                      run_segment, progress, loss_grads)
+            _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, loss_chunks,
+                      states_at, run_segment, progress, loss_grads)
             result.stats["backward_seconds"] = time.perf_counter() - t0 - forward_seconds
             result.stats["checkpoint_bytes"] = store.nbytes
         final["step"] = sim.step_count + n_steps
@@ -185,8 +201,8 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
         store.close()
 
 
-def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, state_at, run_segment,
-              progress, loss_grads):
+def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, K, store, loss_chunks, states_at,
+              run_segment, progress, loss_grads):
     n_steps, sub, dt = len(applied), sim.substeps, sim.dt
     n_tools = len(sim.tools.specs)
     grad_actions = np.zeros_like(applied)
@@ -200,16 +216,21 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
         steps = seg_steps(seg)
         if carry is not None:
             diff.add_state_grad(len(steps) * sub, carry)
-        for j in reversed(range(len(steps))):
-            g = steps[j]
-            s0, s1 = j * sub, (j + 1) * sub
-            if loss.active(g + 1, n_steps):
-                grads = loss_grads.pop(g) if g in loss_grads else loss(state_at(s1, g + 1), n_steps, grad=True)[1]
-                for key, value in grads.items():
+        # the loss gradients of the whole segment go in first (each into its own slot), a chunk per launch
+        for chunk in reversed(loss_chunks(steps)):
+            missing = [g for g in chunk if g not in loss_grads]
+            states = dict(zip(missing, states_at(steps, missing))) if missing else {}
+            grads = {}
+            for g in reversed(chunk):
+                grads[g] = loss_grads.pop(g) if g in loss_grads else loss(states[g], n_steps, grad=True)[1]
+                for key, value in grads[g].items():
                     if not np.all(np.isfinite(value)):
                         raise NonFiniteGradientError(f"the loss gradient with respect to {key} is NaN or infinite "
                                                      f"at step {g + 1}")
-                diff.add_state_grad(s1, grads)
+            diff.add_steps_grad([(g - steps.start + 1) * sub for g in chunk], [grads[g] for g in chunk])
+        for j in reversed(range(len(steps))):
+            g = steps[j]
+            s0, s1 = j * sub, (j + 1) * sub
             for i in reversed(range(sub)):
                 diff.substep_grad(s0 + i)
             if n_tools and clipped_dims[g].any():

@@ -23,10 +23,12 @@ a GPU (no copies) they are atomic.
 
 The backward of substep s (`substep_grad`) needs the substep's intermediates. The forward keeps the grid
 before and after its update, the stress τ and the gather's result per substep (`store_*`, 7 reals a node and
-15 a particle, 24 with rigid bodies); the backward restores them (`restore`), re-runs only the SVD (and with
-rigid bodies the stress and the projection's body sums), then runs the gradients in reverse order. Gradients accumulate in the `.grad`
-of the slot fields; the checkpointing driver (checkpoint.py) seeds them from the loss and hands them across
-segment boundaries.
+15 a particle, 24 with rigid bodies); the backward kernels read them where they are (the grid update's
+backward finds its grid put back by the gather's backward), it re-runs only the SVD (and with rigid bodies the
+stress and the projection's body sums), then runs the gradients in reverse order. Intermediate gradients are
+assigned by the first kernel to write them, or zeroed by the last to read them, so no launch only clears.
+Gradients accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py) seeds them
+from the loss and hands them across segment boundaries.
 
 The forward runs as one kernel of three parallel loops (`forward_kernel`); the backward differentiates the
 separate kernels above, built from the same functions. Launch cost shapes this: on the 2-core CPU here a
@@ -78,10 +80,12 @@ class DiffMPMSolver:
         self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
         self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
         self.tau = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # Kirchhoff stress (Pa)
-        # G2P's gather before the projection out of statics and walls (the two have separate backwards)
-        self.x_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)  # x + Δt v_gathered (m)
-        self.v_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)  # gathered velocity (m/s)
-        self.C_pre = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # gathered affine velocity (1/s)
+        # G2P's gather before the projection out of statics and walls (the two have separate backwards): the
+        # projection reads the stored gather (store_x_pre, ...) plus these, which stay zero; their .grad is the
+        # gradient of the gathered x + Δt v (m), v (m/s) and C (1/s, with rigid bodies), for the gather's backward
+        self.x_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)
+        self.v_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)
+        self.C_pre = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)
         self.grid_m = ti.field(real, shape=fast.grid_shape, needs_grad=True)  # node mass (kg)
         self.grid_mv = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node momentum
         self.grid_v = ti.Vector.field(3, real, shape=fast.grid_shape, needs_grad=True)  # node velocity after BCs
@@ -269,27 +273,66 @@ class DiffMPMSolver:
             self._write_twists(np.ascontiguousarray(twists, dtype=self.np_real), substeps)
 
     @ti.kernel
-    def _read_step(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), tp: ti.types.ndarray(),
-                   tR: ti.types.ndarray()):
-        for p in range(self.n_particles):
+    def _read_steps(self, slots: ti.types.ndarray(), x: ti.types.ndarray(), v: ti.types.ndarray(),
+                    tp: ti.types.ndarray(), tR: ti.types.ndarray()):
+        for j, p in ti.ndrange(slots.shape[0], self.n_particles):
+            s = slots[j]
             for i in ti.static(range(3)):
-                x[p, i] = self.x[s, p][i]
-                v[p, i] = self.v[s, p][i]
+                x[j, p, i] = self.x[s, p][i]
+                v[j, p, i] = self.v[s, p][i]
         ti.loop_config(serialize=True)
-        for k in range(self.n_tools):
+        for j, k in ti.ndrange(slots.shape[0], self.n_tools):
+            s = slots[j]
             for i in ti.static(range(3)):
-                tp[k, i] = self.tool_p[k, s][i]
-                for j in ti.static(range(3)):
-                    tR[k, i, j] = self.tool_R[k, s][i, j]
+                tp[j, k, i] = self.tool_p[k, s][i]
+                for d in ti.static(range(3)):
+                    tR[j, k, i, d] = self.tool_R[k, s][i, d]
 
-    def read_step(self, s: int):
-        """Positions, velocities, tool origins and rotations of slot s as float64 arrays (one launch)."""
-        n, r, nt = self.n_particles, self.np_real, self.n_tools
-        x, v = np.zeros((n, 3), r), np.zeros((n, 3), r)
-        tp, tR = np.zeros((max(nt, 1), 3), r), np.zeros((max(nt, 1), 3, 3), r)
-        self._read_step(s, x, v, tp, tR)
-        return (x.astype(np.float64), v.astype(np.float64), tp[:nt].astype(np.float64),
-                tR[:nt].astype(np.float64))
+    def read_steps(self, slots):
+        """Positions, velocities, tool origins and rotations of several slots in one launch: arrays with a
+        leading axis over `slots`, in the working precision (the loss takes float64 rows of them)."""
+        slots = np.ascontiguousarray(slots, dtype=np.int32)
+        m, n, r, nt = len(slots), self.n_particles, self.np_real, self.n_tools
+        x, v = np.zeros((m, n, 3), r), np.zeros((m, n, 3), r)
+        tp, tR = np.zeros((m, max(nt, 1), 3), r), np.zeros((m, max(nt, 1), 3, 3), r)
+        if m:
+            self._read_steps(slots, x, v, tp, tR)
+        return x, v, tp[:, :nt], tR[:, :nt]
+
+    @ti.kernel
+    def _add_steps_xv_grad(self, slots: ti.types.ndarray(), x: ti.types.ndarray(), v: ti.types.ndarray()):
+        for j, p in ti.ndrange(slots.shape[0], self.n_particles):
+            s = slots[j]
+            self.x.grad[s, p] += ti.Vector([x[j, p, 0], x[j, p, 1], x[j, p, 2]])
+            self.v.grad[s, p] += ti.Vector([v[j, p, 0], v[j, p, 1], v[j, p, 2]])
+
+    @ti.kernel
+    def _add_steps_tool_grad(self, slots: ti.types.ndarray(), p: ti.types.ndarray(), R: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
+        for j, k in ti.ndrange(slots.shape[0], self.n_tools):
+            s = slots[j]
+            self.tool_p.grad[k, s] += ti.Vector([p[j, k, i] for i in ti.static(range(3))])
+            self.tool_R.grad[k, s] += ti.Matrix([[R[j, k, i, d] for d in ti.static(range(3))]
+                                                 for i in ti.static(range(3))])
+
+    def add_steps_grad(self, slots, grads: list):
+        """Add loss gradients {x, v, tool_position, tool_rotation} (any subset, losses.GRAD_KEYS), one dict per
+        slot, into those slots: one launch for the particles and one for the tools, whatever the number of
+        slots (a launch per step cost as much as a substep's gather at small sizes)."""
+        slots = np.ascontiguousarray(slots, dtype=np.int32)
+        m, n, r, nt = len(slots), self.n_particles, self.np_real, self.n_tools
+
+        def stacked(key, shape):
+            out = np.zeros((m,) + shape, r)
+            for j, g in enumerate(grads):
+                if g.get(key) is not None:
+                    out[j] = g[key]
+            return out
+
+        if any(g.get("x") is not None or g.get("v") is not None for g in grads):
+            self._add_steps_xv_grad(slots, stacked("x", (n, 3)), stacked("v", (n, 3)))
+        if nt and any(g.get("tool_position") is not None or g.get("tool_rotation") is not None for g in grads):
+            self._add_steps_tool_grad(slots, stacked("tool_position", (nt, 3)), stacked("tool_rotation", (nt, 3, 3)))
 
     @ti.kernel
     def _step_grad_end(self, s0: ti.i32, s1: ti.i32, out: ti.types.ndarray()):
@@ -368,49 +411,28 @@ class DiffMPMSolver:
         self._copy_slot(src, dst)
 
     def clear_grads(self):
-        """Zero the gradients of every slot."""
-        for f in (self.x, self.v, self.C, self.F, self.tool_p, self.tool_R, self.tool_v, self.tool_w):
+        """Zero the gradients of every slot, and of the intermediates that the backward kernels zero after use
+        (x_pre, v_pre, C_pre, U, Σ, V: in case an earlier backward stopped half-way)."""
+        for f in (self.x, self.v, self.C, self.F, self.tool_p, self.tool_R, self.tool_v, self.tool_w, self.x_pre,
+                  self.v_pre, self.C_pre, self.U, self.sig, self.V):
             f.grad.fill(0.0)
 
     @ti.kernel
-    def restore(self, s: ti.i32):
-        """Before substep s's backward: its grid and gather result as the forward left them (forward_kernel), and
-        zero gradients for the grid and every per-substep intermediate."""
-        for I in ti.grouped(self.grid_m):
-            self.grid_m[I] = self.store_m[s, I]
-            self.grid_mv[I] = self.store_mv[s, I]
-            self.grid_v[I] = self.store_v[s, I]
-            self.grid_m.grad[I] = 0.0
-            self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
-            self.grid_v.grad[I] = ti.Vector.zero(float, 3)
+    def restore_rigid(self):
+        """With rigid bodies, before a substep's backward: zero the gradients that the rigid projection's backward
+        accumulates (the other intermediates are read from the stores, and their gradients zeroed by the kernel
+        that reads them last)."""
         for p in range(self.n_particles):
-            self.tau[p] = self.store_tau[s, p]
-            self.x_pre[p] = self.store_x_pre[s, p]
-            self.v_pre[p] = self.store_v_pre[s, p]
-            if ti.static(self.has_rigid):
-                self.C_pre[p] = self.store_C_pre[s, p]
-            else:
-                self.C_pre[p] = self.C[s + 1, p]
             self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.tau.grad[p] = ti.Matrix.zero(float, 3, 3)
-            self.x_pre.grad[p] = ti.Vector.zero(float, 3)
-            self.v_pre.grad[p] = ti.Vector.zero(float, 3)
-            self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
-            if ti.static(len(self.svd_models) > 0):
-                self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
-                self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
-                self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
-            if ti.static(self.has_rigid):
-                self.x_g.grad[p] = ti.Vector.zero(float, 3)
-                self.v_g.grad[p] = ti.Vector.zero(float, 3)
-                self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
-        if ti.static(self.has_rigid):
-            ti.loop_config(serialize=True)
-            for b in range(self.rigid.n_bodies):
-                for f in ti.static((self.com_sum, self.momentum, self.L, self.omega)):
-                    f.grad[b] = ti.Vector.zero(float, 3)
-                for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
-                    f.grad[b] = ti.Matrix.zero(float, 3, 3)
+            self.x_g.grad[p] = ti.Vector.zero(float, 3)
+            self.v_g.grad[p] = ti.Vector.zero(float, 3)
+            self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            for f in ti.static((self.com_sum, self.momentum, self.L, self.omega)):
+                f.grad[b] = ti.Vector.zero(float, 3)
+            for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
+                f.grad[b] = ti.Matrix.zero(float, 3, 3)
 
     @ti.func
     def _strain(self, s, p):
@@ -419,11 +441,15 @@ class DiffMPMSolver:
 
     @ti.kernel
     def svd_kernel(self, s: ti.i32):
-        """U Σ Vᵀ = F_trial for particles whose model needs it."""
+        """U Σ Vᵀ = F_trial for particles whose model needs it (re-run before each substep's backward, so it also
+        zeroes the gradients of U, Σ, V that the stress's backward accumulates)."""
         for p in range(self.n_particles):
             for k in ti.static(self.svd_models):
                 if self.fast.model[p] == k:
                     self.U[p], self.sig[p], self.V[p] = svd3.svd(self._strain(s, p))
+                    self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
+                    self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
+                    self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
 
     @ti.kernel
     def svd_grad_kernel(self, s: ti.i32):
@@ -462,7 +488,7 @@ class DiffMPMSolver:
         base, fx, w = self.fast._stencil(self.x[s, p])
         mp = self.fast.mass[p]
         k_tau = -self.dt * self.fast.rest_volume[p] * 4.0 * self.inv_dx * self.inv_dx
-        affine = k_tau * self.tau[p] + mp * self.C[s, p]
+        affine = k_tau * self.store_tau[s, p] + mp * self.C[s, p]
         return base, fx, w, mp, k_tau, mp * self.v[s, p], affine
 
     @ti.kernel
@@ -471,7 +497,7 @@ class DiffMPMSolver:
         With d_i = (offset − f) Δx, G_i = ∂L/∂(mv)_i and g_i = ∂L/∂m_i:
             ḡ = Σ_i w G_i,  ∂L/∂v += m ḡ,  ∂L/∂A = Σ_i w G_i d_iᵀ → ∂L/∂τ += k ∂L/∂A, ∂L/∂C += m ∂L/∂A
             ∂L/∂f = Σ_i (G_i·(m v + A d_i) + m g_i) ∇_f w − Δx Aᵀ ḡ,  ∂L/∂x += ∂L/∂f / Δx
-        and F of slot s + 1 is F_model (without rigid bodies)."""
+        and F of slot s + 1 is F_model (without rigid bodies). τ is the stored one (store_tau)."""
         for p in range(self.n_particles):
             base, fx, w, mp, k_tau, momentum, affine = self._p2g_terms(s, p)
             dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
@@ -492,9 +518,9 @@ class DiffMPMSolver:
             self.x.grad[s, p] += self.inv_dx * g_f
             self.v.grad[s, p] += mp * g_mom
             self.C.grad[s, p] += mp * g_A
-            self.tau.grad[p] += k_tau * g_A
+            self.tau.grad[p] = k_tau * g_A  # the first to write these in a substep's backward
             if ti.static(not self.has_rigid):
-                self.F_model.grad[p] += self.F.grad[s + 1, p]
+                self.F_model.grad[p] = self.F.grad[s + 1, p]
 
     @ti.kernel
     def grid_update(self, s: ti.i32):
@@ -603,7 +629,7 @@ class DiffMPMSolver:
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
-            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v  # restore() hands them to the backward
+            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v  # for the backward (g2p_project)
             if ti.static(self.has_rigid):
                 self.store_C_pre[s, p] = new_C
             xp, new_v = self._project(xp, new_v)
@@ -619,10 +645,15 @@ class DiffMPMSolver:
 
     @ti.kernel
     def g2p_project(self, s: ti.i32):
-        """The projection alone, from x_pre, v_pre, C_pre: differentiated by Taichi (g2p_grad)."""
+        """The projection alone, of the stored gather (plus x_pre, v_pre, C_pre, zero, whose gradients Taichi's
+        reverse of this kernel fills: g2p_grad). Without rigid bodies C of slot s + 1 is the gathered C, which
+        the forward wrote, and its gradient goes straight to the gather's backward."""
         for p in range(self.n_particles):
-            xp, vp = self._project(self.x_pre[p], self.v_pre[p])
-            self._store_g2p(p, s, xp, vp, self.C_pre[p])
+            xp, vp = self._project(self.store_x_pre[s, p] + self.x_pre[p], self.store_v_pre[s, p] + self.v_pre[p])
+            if ti.static(self.has_rigid):
+                self.x_g[p], self.v_g[p], self.C_g[p] = xp, vp, self.store_C_pre[s, p] + self.C_pre[p]
+            else:
+                self.x[s + 1, p], self.v[s + 1, p] = xp, vp
 
     @ti.kernel
     def g2p_gather_grad(self, s: ti.i32):
@@ -633,7 +664,10 @@ class DiffMPMSolver:
             ∂L/∂g_i += w (ḡv + (4/Δx) Ḡ d)
             ∂L/∂f   += Σ_i [g_i·(ḡv + (4/Δx) Ḡ d) ∇_f w − (4/Δx) w Ḡᵀ g_i]
             ∂L/∂x   += ∂L/∂x_pre + ∂L/∂f / Δx
-        with the quadratic B-spline derivatives w₀' = f − 1.5, w₁' = −2(f − 1), w₂' = f − 0.5."""
+        with the quadratic B-spline derivatives w₀' = f − 1.5, w₁' = −2(f − 1), w₂' = f − 0.5.
+        The node velocities g_i are the stored ones (store_v). The kernel's grid loop also puts the substep's grid
+        back for grid_update's backward (grid_m, grid_mv from the stores, their gradients zero): no separate
+        restore launch."""
         if ti.static(self.private):
             ti.loop_config(block_dim=1)
             for c in range(self.copies):
@@ -644,10 +678,21 @@ class DiffMPMSolver:
                 for c in range(self.copies):
                     g += self.grid_private[c, I[0], I[1], I[2]]
                     self.grid_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
-                self.grid_v.grad[I] += g
+                self._restore_node(s, I, g)
         else:
+            for I in ti.grouped(self.grid_m):
+                self._restore_node(s, I, ti.Vector.zero(float, 3))
             for p in range(self.n_particles):
                 self._gather_grad_particle(0, s, p)
+
+    @ti.func
+    def _restore_node(self, s, I, g_v):
+        """Node I as substep s's grid update found it, with ∂L/∂v_i = g_v and zero mass and momentum gradients."""
+        self.grid_m[I] = self.store_m[s, I[0], I[1], I[2]]
+        self.grid_mv[I] = self.store_mv[s, I[0], I[1], I[2]]
+        self.grid_v.grad[I] = g_v
+        self.grid_m.grad[I] = 0.0
+        self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
 
     @ti.func
     def _gather_grad_particle(self, c, s, p):
@@ -655,7 +700,12 @@ class DiffMPMSolver:
         xp = self.x[s, p]
         gx = self.x_pre.grad[p]
         gv = self.v_pre.grad[p] + self.dt * gx
-        gC = self.C_pre.grad[p]
+        gC = self.C.grad[s + 1, p]
+        if ti.static(self.has_rigid):
+            gC = self.C_pre.grad[p]
+            self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
+        self.x_pre.grad[p] = ti.Vector.zero(float, 3)  # read once: zero for the next substep's projection
+        self.v_pre.grad[p] = ti.Vector.zero(float, 3)
         base, fx, w = self.fast._stencil(xp)
         dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
         k4 = 4.0 * self.inv_dx
@@ -664,16 +714,16 @@ class DiffMPMSolver:
             d = offset - fx
             wx, wy, wz = w[offset[0]][0], w[offset[1]][1], w[offset[2]][2]
             weight = wx * wy * wz
-            g_i = self.grid_v[base + offset]
+            i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+            g_i = self.store_v[s, i, j, k]
             h = gv + k4 * (gC @ d)
             if ti.static(self.private):
-                i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
                 self.grid_private[c, i, j, k] = self.grid_private[c, i, j, k] + weight * h
             else:
                 self.grid_v.grad[base + offset] += weight * h
             grad_w = ti.Vector([dw[offset[0]][0] * wy * wz, wx * dw[offset[1]][1] * wz, wx * wy * dw[offset[2]][2]])
             gf += g_i.dot(h) * grad_w
-        gf -= k4 * (gC.transpose() @ self.v_pre[p])  # Σ_i w g_i = v
+        gf -= k4 * (gC.transpose() @ self.store_v_pre[s, p])  # Σ_i w g_i = v
         self.x.grad[s, p] += gx + self.inv_dx * gf
 
     def g2p_grad(self, s: int):
@@ -814,10 +864,9 @@ class DiffMPMSolver:
             if self.svd_models:
                 self.svd(s)  # SVD of F_trial
             if self.rigid is not None:
+                self.restore_rigid()
                 for k in range(len(self.models)):
                     self.stress(s, k)  # constitutive models
-            self.restore(s)
-            if self.rigid is not None:
                 self.g2p_project(s)
         if self.rigid is not None:
             for kernel in self._rigid_kernels():  # rigid projection
