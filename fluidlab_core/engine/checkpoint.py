@@ -27,7 +27,7 @@ from fluidlab_core.losses import StepState
 
 
 LOSS_GRAD_CACHE_BYTES = 256e6  # host memory for loss gradients kept from the forward pass (see rollout_with_grad)
-LOSS_READ_BYTES = 64e6  # states read back per launch for the loss (read_steps), and gradients added per launch
+LOSS_READ_BYTES = 16e6  # states read back per launch for the loss (read_steps), and gradients added per launch
 
 
 class NonFiniteGradientError(FloatingPointError):
@@ -141,11 +141,13 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
         return [active[i:i + per_chunk] for i in range(0, len(active), per_chunk)]
 
     def states_at(steps, chunk):
-        """StepState after each step g of chunk (global step numbers within `steps`, the buffered segment)."""
+        """StepState after each step g of chunk (global step numbers within `steps`, the buffered segment), one
+        at a time (each in float64 only while the loss looks at it)."""
         x, v, tp, tR = diff.read_steps([(g - steps.start + 1) * sub for g in chunk])
         f64 = np.float64
-        return [StepState(g + 1, (g + 1) * dt, x[j].astype(f64), v[j].astype(f64), tp[j].astype(f64),
-                          tR[j].astype(f64)) for j, g in enumerate(chunk)]
+        for j, g in enumerate(chunk):
+            yield StepState(g + 1, (g + 1) * dt, x[j].astype(f64), v[j].astype(f64), tp[j].astype(f64),
+                            tR[j].astype(f64))
 
     # the loss gradients of the last segment's steps, taken when its forward reads the state for the loss value,
     # so that its backward need not read the state again (as long as they fit LOSS_GRAD_CACHE_BYTES)
@@ -218,11 +220,11 @@ def _backward(sim, diff, loss, result, applied, clipped_dims, seg_steps, n_seg, 
             diff.add_state_grad(len(steps) * sub, carry)
         # the loss gradients of the whole segment go in first (each into its own slot), a chunk per launch
         for chunk in reversed(loss_chunks(steps)):
-            missing = [g for g in chunk if g not in loss_grads]
-            states = dict(zip(missing, states_at(steps, missing))) if missing else {}
-            grads = {}
+            grads = {g: loss_grads.pop(g) for g in chunk if g in loss_grads}
+            missing = [g for g in chunk if g not in grads]
+            for state in (states_at(steps, missing) if missing else ()):
+                grads[state.step - 1] = loss(state, n_steps, grad=True)[1]
             for g in reversed(chunk):
-                grads[g] = loss_grads.pop(g) if g in loss_grads else loss(states[g], n_steps, grad=True)[1]
                 for key, value in grads[g].items():
                     if not np.all(np.isfinite(value)):
                         raise NonFiniteGradientError(f"the loss gradient with respect to {key} is NaN or infinite "
