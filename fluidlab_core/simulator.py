@@ -76,19 +76,24 @@ class Simulator:
         velocities = self.tools.parse_action(action)
         clipped = {spec.name: False for spec in self.tools.specs}
         sub_dt = self._dt / self._substeps
+        n_tools = len(self.tools.specs)
+        # each substep's tool poses and twists go into the substep's own launch (MPMSolver.substep)
+        tool_state = np.zeros((max(n_tools, 1), 18), dtype=self.solver.np_real)
         for _ in range(n):
             v_step, hits = self.tools.clip(velocities, self._dt)
             for spec, hit in zip(self.tools.specs, hits):
                 clipped[spec.name] |= hit
+            turn = self.tools.turns(v_step, sub_dt)
+            tool_state[:n_tools, 12:] = v_step
             for _ in range(self._substeps):
-                for i, tool in enumerate(self.solver.spec.tools):
-                    tool.write(self.tools.position[i], self.tools.rotation[i], v_step[i, :3], v_step[i, 3:])
-                self.solver.substep()
+                tool_state[:n_tools, :3] = self.tools.position
+                tool_state[:n_tools, 3:12] = self.tools.rotation.reshape(n_tools, 9)
+                self.solver.substep(tool_state)
                 if self.solver.rigid is not None:
                     self.solver.rigid.project()
                     if self.solver.rigid.sdfs:
                         self.solver.rigid.exclude()
-                self.tools.advance(v_step, sub_dt)
+                self.tools.advance(v_step, sub_dt, turn)
             self.step_count += 1
             if self.check_finite_every and self.step_count % self.check_finite_every == 0:
                 self.check_finite()
@@ -129,8 +134,10 @@ class Simulator:
             info = self.step(velocities[g] if self.tools.specs else None)
             clipped[g] = [info["clipped"][s.name] for s in self.tools.specs]
             if loss.active(g + 1, n_steps):
-                state = StepState(g + 1, (g + 1) * self._dt, self.positions(), self.velocities(),
-                                  self.tools.position.copy(), self.tools.rotation.copy())
+                x, v = np.zeros((self.n_particles, 3)), np.zeros((self.n_particles, 3))
+                self.solver.read_xv(x, v)
+                state = StepState(g + 1, (g + 1) * self._dt, x, v, self.tools.position.copy(),
+                                  self.tools.rotation.copy())
                 step_losses[g], _ = loss(state, n_steps, grad=False)
             if progress:
                 progress("forward", g + 1, n_steps)
@@ -164,8 +171,7 @@ class Simulator:
 
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
-        self.solver.find_nonfinite()
-        bits = int(self.solver.bad_field[None])
+        bits = int(self.solver.find_nonfinite())
         if bits:
             p = int(self.solver.bad_particle[None])
             body = next(h for h in self.handles.values() if h.start <= p < h.start + h.count)

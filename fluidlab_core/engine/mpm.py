@@ -18,7 +18,6 @@ side, so that particles at a wall keep their whole 3×3×3 stencil on the grid; 
 lower and upper: nodes sit at lower + (k + ½)Δx and those within half a cell of a wall remove velocity
 into it, so particles stop at the wall itself. Particle rest volume V⁰ = s³ for a lattice spacing s, mass m = ρ V⁰.
 """
-from __future__ import annotations
 
 from dataclasses import dataclass
 
@@ -167,9 +166,21 @@ class MPMSolver:
         return mp, mp * self.v[p], affine
 
     @ti.kernel
-    def substep(self):
-        """One MLS-MPM substep: clear grid, P2G, grid update, G2P."""
+    def substep(self, tool_state: ti.types.ndarray()):
+        """One MLS-MPM substep: the tools' poses and twists for it, clear grid, P2G, grid update, G2P.
+
+        tool_state: (max(n_tools, 1), 18) rows of origin (m), rotation (row-major), linear (m/s) and angular
+        (rad/s) velocity, copied into the tools' fields first (in this launch: a launch per field from Python
+        cost more than the substep on small scenes). On the CPU the substep runs as three parallel loops: P2G
+        into the private grids; their sum (zeroing them for the next substep) with the grid update; G2P."""
         dt, dx = self.dt, self.dx
+        for k in ti.static(range(len(self.spec.tools))):
+            tool = self.spec.tools[k]
+            tool.position[None] = ti.Vector([tool_state[k, i] for i in ti.static(range(3))])
+            tool.rotation[None] = ti.Matrix([[tool_state[k, 3 + 3 * i + j] for j in ti.static(range(3))]
+                                             for i in ti.static(range(3))])
+            tool.linear_velocity[None] = ti.Vector([tool_state[k, 12 + i] for i in ti.static(range(3))])
+            tool.angular_velocity[None] = ti.Vector([tool_state[k, 15 + i] for i in ti.static(range(3))])
         if ti.static(self.scatter_copies == 0):
             # clear grid
             for I in ti.grouped(self.grid_m):
@@ -184,12 +195,11 @@ class MPMSolver:
                     weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
                     self.grid_v[base + offset] += weight * (momentum + affine @ dpos)
                     self.grid_m[base + offset] += weight * mp
+            for I in ti.grouped(self.grid_m):
+                self._grid_update(I, self.grid_m[I], self.grid_v[I])
         else:
-            # clear the private grids
-            for c, i, j, k in self.grid_m_private:
-                self.grid_m_private[c, i, j, k] = 0.0
-                self.grid_v_private[c, i, j, k] = ti.Vector.zero(float, 3)
-            # P2G: each thread scatters its share of particles into its own grid, without atomics
+            # P2G: each thread scatters its share of particles into its own grid, without atomics (the grids
+            # are zero: allocated so, and zeroed again as they are summed)
             ti.loop_config(block_dim=1)
             for c in range(self.scatter_copies):
                 for p in range(c * self.scatter_chunk, ti.min((c + 1) * self.scatter_chunk, self.n_particles)):
@@ -202,27 +212,16 @@ class MPMSolver:
                         self.grid_v_private[c, i, j, k] = self.grid_v_private[c, i, j, k] + weight * (
                             momentum + affine @ dpos)
                         self.grid_m_private[c, i, j, k] = self.grid_m_private[c, i, j, k] + weight * mp
-            # reduce the private grids
+            # sum the private grids (zeroing them) and update the node
             for I in ti.grouped(self.grid_m):
                 m = 0.0
                 mv = ti.Vector.zero(float, 3)
                 for c in range(self.scatter_copies):
                     m += self.grid_m_private[c, I[0], I[1], I[2]]
                     mv += self.grid_v_private[c, I[0], I[1], I[2]]
-                self.grid_m[I] = m
-                self.grid_v[I] = mv
-        # grid update
-        for I in ti.grouped(self.grid_m):
-            m = self.grid_m[I]
-            if m > self.mass_floor:
-                vn = self.grid_v[I] / m + dt * ti.Vector(self.gravity)
-                xn = ti.Vector(self.origin) + I * dx
-                for k in ti.static(range(len(self.spec.colliders))):
-                    vn = self.spec.colliders[k].grid(xn, vn)
-                for k in ti.static(range(len(self.spec.tools))):
-                    vn = self.spec.tools[k].contact(xn, vn)
-                vn = self._walls(xn, vn)
-                self.grid_v[I] = vn
+                    self.grid_m_private[c, I[0], I[1], I[2]] = 0.0
+                    self.grid_v_private[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+                self._grid_update(I, m, mv)
         # G2P
         for p in self.x:
             new_v, new_C = self._gather(self.grid_v, self.x[p])
@@ -235,6 +234,22 @@ class MPMSolver:
             self.v[p] = new_v
             self.C[p] = new_C
             self.x[p] = xp
+
+    @ti.func
+    def _grid_update(self, I, m, mv):
+        """Node I's mass and velocity from its mass and momentum: gravity, statics, tools, walls (nodes lighter
+        than mass_floor keep their momentum, which G2P weighs as a velocity of about zero)."""
+        self.grid_m[I] = m
+        vn = mv
+        if m > self.mass_floor:
+            vn = mv / m + self.dt * ti.Vector(self.gravity)
+            xn = ti.Vector(self.origin) + I * self.dx
+            for k in ti.static(range(len(self.spec.colliders))):
+                vn = self.spec.colliders[k].grid(xn, vn)
+            for k in ti.static(range(len(self.spec.tools))):
+                vn = self.spec.tools[k].contact(xn, vn)
+            vn = self._walls(xn, vn)
+        self.grid_v[I] = vn
 
     @ti.func
     def _gather(self, grid_v, xp):
@@ -280,8 +295,18 @@ class MPMSolver:
         return xp, vp
 
     @ti.kernel
-    def find_nonfinite(self):
-        """Flag the fields holding a NaN or infinity (bits: 1 x, 2 v, 4 F) and the first such particle."""
+    def read_xv(self, x: ti.types.ndarray(), v: ti.types.ndarray()):
+        """Positions and velocities into (N, 3) arrays of any float type, in one launch (a rollout's loss reads
+        both after every step)."""
+        for p in range(self.n_particles):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[p][i]
+                v[p, i] = self.v[p][i]
+
+    @ti.kernel
+    def find_nonfinite(self) -> ti.i32:
+        """Flag the fields holding a NaN or infinity (bits: 1 x, 2 v, 4 F) and the first such particle; returns
+        the bits (so that a check that finds nothing costs one launch)."""
         self.bad_field[None] = 0
         self.bad_particle[None] = self.n_particles
         for p in self.x:
@@ -295,6 +320,7 @@ class MPMSolver:
             if bits > 0:
                 ti.atomic_or(self.bad_field[None], bits)
                 ti.atomic_min(self.bad_particle[None], p)
+        return self.bad_field[None]
 
     @ti.kernel
     def compute_pressure(self):

@@ -99,12 +99,6 @@ class Tool:
 
         return contact
 
-    def write(self, position, rotation, linear, angular):
-        self.position[None] = position.tolist()
-        self.rotation[None] = rotation.tolist()
-        self.linear_velocity[None] = linear.tolist()
-        self.angular_velocity[None] = angular.tolist()
-
 
 class ToolState:
     """Tool poses on the host (numpy), advanced substep by substep; the kernels read them from `Tool`."""
@@ -150,10 +144,20 @@ class ToolState:
         out, dims = clip_twists(self.specs, self.position, velocities, dt)
         return out, [bool(d.any()) for d in dims]
 
-    def advance(self, velocities: np.ndarray, dt: float):
-        for i in range(len(self.specs)):
-            self.position[i] += velocities[i, :3] * dt
-            self.rotation[i] = Rotation.from_rotvec(velocities[i, 3:] * dt).as_matrix() @ self.rotation[i]
+    @staticmethod
+    def turns(velocities: np.ndarray, dt: float) -> np.ndarray:
+        """(n_tools, 3, 3) rotations exp([ω]× dt) of the angular velocities over dt."""
+        return Rotation.from_rotvec(velocities[:, 3:] * dt).as_matrix().reshape(-1, 3, 3)
+
+    def advance(self, velocities: np.ndarray, dt: float, turns: np.ndarray | None = None):
+        """p ← p + v dt, R ← exp([ω]× dt) R; `turns` (from `turns(velocities, dt)`) saves recomputing the
+        rotations when several substeps hold the same twist."""
+        if not len(self.specs):
+            return
+        if turns is None:
+            turns = self.turns(velocities, dt)
+        self.position += velocities[:, :3] * dt
+        self.rotation = turns @ self.rotation
 
     def pose(self, i: int) -> np.ndarray:
         """(x, y, z, qx, qy, qz, qw) of tool i."""
