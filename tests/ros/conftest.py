@@ -152,15 +152,33 @@ class Client:
         time.sleep(SETTLE)
         return client
 
+    def in_executor(self, fn, *args, **kwargs):
+        """fn(*args, **kwargs) run by the executor's thread. rclpy's ActionClient files a request's future only
+        after sending the request, so a response that the executor thread takes in between is dropped ("Ignoring
+        unexpected goal response", seen once in a full local run: a goal never acknowledged). Sent from the
+        executor's own thread, nothing can come between."""
+        return self.wait(self.executor.create_task(fn, *args, **kwargs), 10, f"the executor to run {fn.__name__}")
+
     def call(self, client, request, timeout: float = 30.0):
-        return self.wait(client.call_async(request), timeout, f"a response from {client.srv_name}")
+        return self.wait(self.in_executor(client.call_async, request), timeout, f"a response from {client.srv_name}")
+
+    def send_goal(self, client, goal, feedback=None, timeout: float = 30.0):
+        """The goal handle once the server has answered (accepted or not)."""
+        return self.wait(self.in_executor(client.send_goal_async, goal, feedback_callback=feedback), timeout,
+                         "goal acceptance")
+
+    def result(self, handle, timeout: float, what: str = "the goal's result"):
+        return self.wait(self.in_executor(handle.get_result_async), timeout, what)
+
+    def cancel(self, handle, timeout: float = 10.0):
+        return self.wait(self.in_executor(handle.cancel_goal_async), timeout, "the cancel response")
 
     def run_goal(self, client, goal, timeout: float, feedback=None):
         """Send a goal and wait for its result; returns (accepted, status, result)."""
-        handle = self.wait(client.send_goal_async(goal, feedback_callback=feedback), 30, "goal acceptance")
+        handle = self.send_goal(client, goal, feedback)
         if not handle.accepted:
             return False, None, None
-        res = self.wait(handle.get_result_async(), timeout, "the goal's result")
+        res = self.result(handle, timeout)
         return True, res.status, res.result
 
     def subscribe(self, kind, topic: str, qos=10):

@@ -88,16 +88,15 @@ def test_optimise_goal_succeeds_with_feedback_and_cancel_ends_a_goal_within_a_se
         long_goal = Optimise.Goal(task="LatteArtStir", size="small", method="cma-es", budget=1000 * 75, seed=1,
                                   name="ros_cancelled")
         first = []
-        handle = client.wait(act.send_goal_async(long_goal, feedback_callback=lambda m: first.append(m)), 30,
-                             "acceptance")
+        handle = client.send_goal(act, long_goal, feedback=lambda m: first.append(m))
         assert handle.accepted
         deadline = time.monotonic() + 300
         while not first:
             assert time.monotonic() < deadline, node.text()
             time.sleep(0.05)
         t_cancel = time.monotonic()
-        client.wait(handle.cancel_goal_async(), 10, "the cancel response")
-        res = client.wait(handle.get_result_async(), 10, "the cancelled goal's result")
+        client.cancel(handle)
+        res = client.result(handle, 10, "the cancelled goal's result")
         elapsed = time.monotonic() - t_cancel
         assert res.status == GoalStatus.STATUS_CANCELED, res.result.message
         assert elapsed < 1.0, f"cancel took {elapsed:.2f} s"
@@ -180,9 +179,8 @@ def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp
         for how in ("stop", "cancel"):
             # speed 0.5: a longer stream; interrupt it once a fifth of it has gone out
             progress = []
-            handle = client.wait(act.send_goal_async(Execute.Goal(trajectory_name=MIXING, speed_scale=0.5),
-                                                     feedback_callback=lambda m: progress.append(m.feedback.progress)),
-                                 30, "acceptance")
+            handle = client.send_goal(act, Execute.Goal(trajectory_name=MIXING, speed_scale=0.5),
+                                      feedback=lambda m: progress.append(m.feedback.progress))
             deadline = time.monotonic() + 120
             while not progress or progress[-1] < 0.2:
                 assert time.monotonic() < deadline, node.text()
@@ -190,8 +188,8 @@ def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp
             if how == "stop":
                 assert client.call(stop, Trigger.Request()).success
             else:
-                client.wait(handle.cancel_goal_async(), 10, "the cancel response")
-            res = client.wait(handle.get_result_async(), 30, "the interrupted goal's result")
+                client.cancel(handle)
+            res = client.result(handle, 30, "the interrupted goal's result")
             want = GoalStatus.STATUS_ABORTED if how == "stop" else GoalStatus.STATUS_CANCELED
             assert res.status == want, res.result.message
             assert "ramped to rest" in res.result.message and progress[-1] < 0.9, res.result.message
