@@ -156,9 +156,11 @@ def rollout_with_grad(sim, diff, velocities: np.ndarray, loss, grad: bool = True
     def run_segment(seg, first_pass, phase):
         steps = seg_steps(seg)
         diff.write_twists(applied[steps.start:steps.stop], sub)
+        # what the backward reads is kept only where the backward follows before the buffer is run again
+        substep = diff.substep if grad and (not first_pass or seg == n_seg - 1) else diff.substep_no_store
         for j, g in enumerate(steps):
             for i in range(sub):
-                diff.substep(j * sub + i)
+                substep(j * sub + i)
             if progress:
                 progress(phase, g + 1, n_steps)
         if not first_pass:

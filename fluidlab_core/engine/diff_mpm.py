@@ -31,9 +31,9 @@ Gradients accumulate in the `.grad` of the slot fields; the checkpointing driver
 from the loss and hands them across segment boundaries.
 
 The forward runs as one kernel of three parallel loops (`forward_kernel`); the backward differentiates the
-separate kernels above, built from the same functions. Launch cost shapes this: on the 2-core CPU here a
-parallel loop costs ~0.14 ms to start whatever its size and a launch ~0.05 ms more in Python (measured), so
-tiny loops (tools, bodies) are serialised and work is grouped into few kernels.
+separate kernels above, built from the same functions. Each parallel loop is a pass over memory and a launch
+(an empty one costs ~0.02 ms from Python here, measured), so tiny loops (tools, bodies) are serialised and
+work is grouped into few kernels and few passes.
 
 Differences from the forward solver (mpm.py), all within floating-point round-off of it: the polar
 decomposition of the rigid projection goes through the SVD, and tool poses advance in the working precision
@@ -579,7 +579,7 @@ class DiffMPMSolver:
         return self.fast._clamp_to_walls(xp, new_v)
 
     @ti.func
-    def _scatter_particle(self, c, s, p):
+    def _scatter_particle(self, c, s, p, keep: ti.template()):
         """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
         atomically into the grid)."""
         Cp = self.C[s, p]
@@ -593,7 +593,8 @@ class DiffMPMSolver:
             self.F_model[p] = Fp
         else:
             self.F[s + 1, p] = Fp
-        self.store_tau[s, p] = tau
+        if ti.static(keep):
+            self.store_tau[s, p] = tau
         base, fx, w = self.fast._stencil(self.x[s, p])
         mp = self.fast.mass[p]
         affine = (-self.dt * self.fast.rest_volume[p] * 4.0 * self.inv_dx * self.inv_dx) * tau + mp * Cp
@@ -610,22 +611,23 @@ class DiffMPMSolver:
                 self.grid_m[base + offset] += weight * mp
 
     @ti.kernel
-    def forward_kernel(self, s: ti.i32):
+    def forward_kernel(self, s: ti.i32, keep: ti.template()):
         """One substep's forward in three parallel loops (a parallel launch is the main cost at small sizes):
         particles (strain, stress, P2G), nodes (sum of the grid copies, grid update, the stores), then, after
         the tools move, particles again (G2P gather, projection). The backward differentiates the separate
-        kernels (stress, grid_update, g2p_project) and the hand-written ones, on the same functions."""
+        kernels (stress, grid_update, g2p_project) and the hand-written ones, on the same functions. Without
+        `keep`, nothing is stored for a backward (a pass whose substeps are run again before their backward)."""
         if ti.static(self.private):
             ti.loop_config(block_dim=1)
             for c in range(self.copies):
                 for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
-                    self._scatter_particle(c, s, p)
+                    self._scatter_particle(c, s, p, keep)
         else:
             for I in ti.grouped(self.grid_m):
                 self.grid_m[I] = 0.0
                 self.grid_mv[I] = ti.Vector.zero(float, 3)
             for p in range(self.n_particles):
-                self._scatter_particle(0, s, p)
+                self._scatter_particle(0, s, p, keep)
         for I in ti.grouped(self.grid_m):
             m = 0.0
             mv = ti.Vector.zero(float, 3)
@@ -639,14 +641,16 @@ class DiffMPMSolver:
                 m, mv = self.grid_m[I], self.grid_mv[I]
             vn = self._node_velocity(I, m, mv, s)
             self.grid_v[I] = vn
-            self.store_m[s, I], self.store_mv[s, I], self.store_v[s, I] = m, mv, vn
+            if ti.static(keep):
+                self.store_m[s, I], self.store_mv[s, I], self.store_v[s, I] = m, mv, vn
         self._advance_tools(s)
         for p in range(self.n_particles):
             new_v, new_C = self.fast._gather(self.grid_v, self.x[s, p])
             xp = self.x[s, p] + self.dt * new_v
-            self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v  # for the backward (g2p_project)
-            if ti.static(self.has_rigid):
-                self.store_C_pre[s, p] = new_C
+            if ti.static(keep):
+                self.store_x_pre[s, p], self.store_v_pre[s, p] = xp, new_v  # for the backward (g2p_project)
+                if ti.static(self.has_rigid):
+                    self.store_C_pre[s, p] = new_C
             xp, new_v = self._project(xp, new_v)
             self._store_g2p(p, s, xp, new_v, new_C)
 
@@ -871,16 +875,21 @@ class DiffMPMSolver:
 
     @ti.ad.grad_replaced
     def substep(self, s: int):
-        """Slot s → slot s + 1."""
+        """Slot s → slot s + 1, keeping what its backward reads (`store_*`)."""
         self._forward(s, True)
 
-    def _forward(self, s: int, whole: bool):
+    def substep_no_store(self, s: int):
+        """Slot s → slot s + 1 without the stores: for a forward pass whose substeps are run again before their
+        backward (checkpointing's first pass over all but the last segment), or that has none."""
+        self._forward(s, True, keep=False)
+
+    def _forward(self, s: int, whole: bool, keep: bool = True):
         """The substep's forward. Without `whole` (before its backward), only what the backward reads and the
         forward did not keep: the SVD (the stress's backward reads it), the stress's F_new only with rigid
         bodies (the rigid projection reads it), the stress, grid and gather restored from the stores, and with
         rigid bodies the projection's body sums (not the slot s + 1 writes)."""
         if whole:
-            self.forward_kernel(s)
+            self.forward_kernel(s, keep)
         else:
             if self.svd_models:
                 self.svd(s)  # SVD of F_trial
