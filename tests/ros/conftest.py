@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -86,6 +87,13 @@ class Proc:
 # up to 1.0 s seen (a stop test once ended on "tick 586 was 1004 ms late" instead of its ~/stop). The tests
 # allow 5 s, so only what a test asks for stops a stream; the twin still judges every command that goes out.
 LATE_TICK_LIMIT = "late_tick_limit:=5.0"
+
+
+def max_late(execute_message: str) -> float:
+    """The largest lateness of a control tick (s) that a successful Execute result reports."""
+    found = re.search(r"late ticks \(max ([0-9.e+-]+) ms\)", execute_message)
+    assert found, execute_message
+    return float(found.group(1)) * 1e-3
 
 
 def start_node(env, tmp_path: Path, *params: str, name: str = "sim_node") -> Proc:

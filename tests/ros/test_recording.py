@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from action_msgs.msg import GoalStatus
 
-from .conftest import ROOT, start_node
+from .conftest import ROOT, max_late, start_node
 
 from fluidlab_msgs.action import Execute, Replay  # noqa: E402
 
@@ -56,8 +56,15 @@ def test_twin_execution_is_recorded_and_replays_to_the_plan(ros_env, client, tmp
     node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}")
     try:
         act = client.action(Execute, "/sim_node/execute")
-        accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=LATTE), timeout=300)
-        assert status == GoalStatus.STATUS_SUCCEEDED, (result.message, node.text())
+        # the replay tolerances below are for a recording of a stream that ran on time: a stall of the stream
+        # (up to 237 ms seen beside a cold Taichi compile in CI) holds a velocity that long and the twin drifts,
+        # so a run with a tick later than 50 ms is executed once more
+        for attempt in range(2):
+            accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=LATTE), timeout=300)
+            assert status == GoalStatus.STATUS_SUCCEEDED, (result.message, node.text())
+            if max_late(result.message) < 0.05:
+                break
+            print(f"\n[recording] the stream ran late ({result.message}); executing again")
         folder = Path(result.recording_path)
         assert folder.is_dir() and folder.parent == tmp_path / "recordings", result.recording_path
 
