@@ -216,6 +216,7 @@ class SimNode(Node):
         self.create_timer(1.0 / state_rate, self._publish_state, callback_group=timers)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=timers)
         self._state_robot = None  # the arm with the last executed task's tool frame, for the state timer
+        self._closing = threading.Event()  # set by shutdown(): the particle thread ends before rclpy does
         self._particle_thread = threading.Thread(target=self._particle_loop, daemon=True)
         self._particle_thread.start()
         self.get_logger().info(
@@ -850,7 +851,7 @@ class SimNode(Node):
         self._fluid = None
 
     def _particle_loop(self):
-        while rclpy.ok():
+        while rclpy.ok() and not self._closing.is_set():
             fluid = self._fluid
             if fluid is None:
                 time.sleep(0.2)
@@ -944,6 +945,8 @@ class SimNode(Node):
             stream.done.wait(timeout)
         with self._fluid_lock:
             self._fluid_quit()
+        self._closing.set()
+        self._particle_thread.join(2.0)
 
 
 def main(args=None):
@@ -980,7 +983,10 @@ def main(args=None):
         node.get_logger().info("shutting down: ramping any motion to rest")
         node.shutdown()
     finally:
-        executor.shutdown(timeout_sec=2.0)
+        # every thread that calls into rclpy ends before the node and the context go: a CI run once ended in
+        # "terminate called without an active exception" (SIGABRT) at this point, under load
+        executor.shutdown(timeout_sec=5.0)
+        spin.join(5.0)
         node.destroy_node()
         rclpy.shutdown()
     return 0
