@@ -214,28 +214,19 @@ class DiffMPMSolver:
             out["tool_position"], out["tool_rotation"] = p.astype(np.float64), R.astype(np.float64)
         return out
 
-    @ti.kernel
-    def _add_xv_grad(self, s: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray()):
-        for p in range(self.n_particles):
-            for i in ti.static(range(3)):
-                self.x.grad[s, p][i] += x[p, i]
-                self.v.grad[s, p][i] += v[p, i]
-
     def add_state_grad(self, s: int, grad: dict):
         """Add gradients {x, v, C, F, tool_position, tool_rotation} (any subset) into slot s."""
+        if grad.get("C") is None and grad.get("F") is None:
+            self.add_steps_grad([s], [grad])
+            return
         n, r = self.n_particles, self.np_real
 
         def array(key, shape):
             g = grad.get(key)
             return np.zeros(shape, r) if g is None else np.ascontiguousarray(g, dtype=r)
 
-        if grad.get("C") is not None or grad.get("F") is not None:
-            self._add_slot_grad(s, array("x", (n, 3)), array("v", (n, 3)), array("C", (n, 3, 3)), array("F", (n, 3, 3)))
-        elif grad.get("x") is not None or grad.get("v") is not None:  # the usual loss: positions and velocities
-            self._add_xv_grad(s, array("x", (n, 3)), array("v", (n, 3)))
-        if self.n_tools and (grad.get("tool_position") is not None or grad.get("tool_rotation") is not None):
-            self._add_tool_grad(s, array("tool_position", (self.n_tools, 3)),
-                                array("tool_rotation", (self.n_tools, 3, 3)))
+        self._add_slot_grad(s, array("x", (n, 3)), array("v", (n, 3)), array("C", (n, 3, 3)), array("F", (n, 3, 3)))
+        self.add_steps_grad([s], [{k: grad[k] for k in ("tool_position", "tool_rotation") if k in grad}])
 
     @ti.kernel
     def _write_tool_pose(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
@@ -249,15 +240,6 @@ class DiffMPMSolver:
     def write_tool_pose(self, s: int, position, rotation):
         r = self.np_real
         self._write_tool_pose(s, np.ascontiguousarray(position, dtype=r), np.ascontiguousarray(rotation, dtype=r))
-
-    @ti.kernel
-    def _add_tool_grad(self, s: ti.i32, p: ti.types.ndarray(), R: ti.types.ndarray()):
-        ti.loop_config(serialize=True)
-        for k in range(self.n_tools):
-            for i in ti.static(range(3)):
-                self.tool_p.grad[k, s][i] += p[k, i]
-                for j in ti.static(range(3)):
-                    self.tool_R.grad[k, s][i, j] += R[k, i, j]
 
     @ti.kernel
     def _write_twists(self, twist: ti.types.ndarray(), substeps: ti.i32):
