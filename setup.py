@@ -48,6 +48,8 @@ setup(
     ],
     entry_points={"console_scripts": ["fluidlab = fluidlab_core.cli:main",
                                     "sim_node = fluidlab_ros.sim_node:main",
-                                    "command_monitor = fluidlab_ros.monitor:main"]},
+                                    "command_monitor = fluidlab_ros.monitor:main"],
+                  # sub-commands of `fluidlab` from packages that fluidlab_core must not import (cli.py)
+                  "fluidlab.commands": ["replay = fluidlab_ros.cli:register"]},
     zip_safe=False,
 )

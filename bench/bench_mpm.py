@@ -13,7 +13,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fluidlab_core  # noqa: E402
-from fluidlab_core import bench  # noqa: E402
+from fluidlab_core.apps import throughput as bench  # noqa: E402
 
 
 def main():

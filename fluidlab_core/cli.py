@@ -8,7 +8,7 @@
                            [--name NAME] [--root trajectories]
     fluidlab evaluate TRAJECTORY.json
     fluidlab render TRAJECTORY.json [--out DIR] [--every N] [--no-mp4]
-    fluidlab replay RECORDING [--out DIR] [--disturb delay=S,scale=F,noise=RAD] [--recover]
+    fluidlab replay RECORDING [--out DIR] [--disturb delay=S,scale=F,noise=RAD] [--recover]   (from fluidlab_ros)
 
 Every simulating subcommand takes --arch (cpu, cuda, auto) and --precision (f32, f64); the default is the
 CPU in float32. A trajectory's report records the precision it was optimised in; evaluate it in the same one
@@ -133,7 +133,7 @@ def _cmd_render(args):
 
 def _cmd_demo(args):
     import fluidlab_core
-    from fluidlab_core import demo
+    from fluidlab_core.apps import demo
 
     fluidlab_core.init(arch=args.arch, precision=args.precision, seed=args.seed)
     paths = demo.run(args.out, size=args.size, duration=args.duration, frames=args.frames, view=args.view,
@@ -155,45 +155,29 @@ def _cmd_materials(args):
 
 def _cmd_bench(args):
     import fluidlab_core
-    from fluidlab_core import bench
+    from fluidlab_core.apps import throughput as bench
 
     fluidlab_core.init(arch=args.arch, precision=args.precision)
     bench.main(particles=args.particles, steps=args.steps, genesis=not args.no_genesis)
     return 0
 
 
-def _cmd_replay(args):
-    # fluidlab_ros holds the recording format and the kinematics; the simulation is fluidlab_core's. Neither
-    # needs a ROS graph (rclpy is used only for its message classes and CDR).
-    from pathlib import Path
+PLUGIN_GROUP = "fluidlab.commands"
 
-    import fluidlab_core
-    from fluidlab_ros.recording import RecordingError, recover
-    from fluidlab_ros.replay import replay
 
-    try:
-        if args.recover:
-            print(f"wrote {recover(args.recording)}")
-            return 0
-        out = args.out or str(Path(args.recording) / "replay")
-        fluidlab_core.init(arch=args.arch, precision=args.precision)
+def _register_plugins(sub):
+    """Sub-commands that other installed packages add through the entry-point group `fluidlab.commands`: each
+    entry point is a function register(subparsers, add_backend) (fluidlab_ros adds `replay` this way, so that
+    this package never imports it). A plug-in that fails to load is reported, not fatal."""
+    from importlib.metadata import entry_points
 
-        def progress(name, j, n):
-            if j == 1 or j == n or j % 50 == 0:
-                print(f"\r{name}: step {j}/{n}", end="" if j < n else "\n", file=sys.stderr, flush=True)
-
-        rep = replay(args.recording, out, args.disturb, progress=progress)
-    except RecordingError as err:
-        print(f"fluidlab: error: {err}", file=sys.stderr)
-        return 2
-    if not rep["closed"]:
-        print("note: the recording was never closed (crash?); replayed what reached the disk", file=sys.stderr)
-    print(f"{rep['task']} ({rep['trajectory']}): loss planned {rep['loss_planned']:.6g}, replayed "
-          f"{rep['loss_replayed']:.6g} (gap {100 * (rep['loss_gap_relative'] or 0):+.2f} %); tool path error "
-          f"max {rep['tool_path_error_task_max'] * 1e3:.3g} mm in the task segment; final particles moved "
-          f"{rep['final_particle_displacement_mean'] * 1e3:.3g} mm on average")
-    print(f"wrote {out}/report.json and plots")
-    return 0
+    for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+        try:
+            register = ep.load()
+        except Exception as err:  # noqa: BLE001 - a broken plug-in must not break the other commands
+            print(f"fluidlab: note: sub-command {ep.name!r} ({ep.value}) is unavailable: {err}", file=sys.stderr)
+            continue
+        register(sub, _add_backend)
 
 
 def main(argv=None) -> int:
@@ -250,19 +234,12 @@ def main(argv=None) -> int:
     _add_backend(p)
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("replay", help="replay a sim_node recording (rosbag2 MCAP) into the fluid and compare with the plan")
-    p.add_argument("recording", help="a recording folder written by sim_node (~/execute)")
-    p.add_argument("--out", default=None, help="report folder (default <recording>/replay)")
-    p.add_argument("--disturb", default="", help="perturb the measured motion: delay=<s>,scale=<f>,noise=<rad>")
-    p.add_argument("--recover", action="store_true", help="only write a closed copy of a recording that was never "
-                                                          "closed (<recording>.recovered)")
-    _add_backend(p)
-    p.set_defaults(func=_cmd_replay)
+    _register_plugins(sub)
 
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, KeyError, OSError) as err:
+    except (ValueError, KeyError, OSError, ImportError) as err:
         print(f"fluidlab: error: {err}", file=sys.stderr)
         return 2
 

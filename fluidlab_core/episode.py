@@ -42,9 +42,7 @@ def render_episode(traj, out_dir, every: int = 1, mp4: bool = True, size=(640, 4
 
     snap(0)
     for k, tw in enumerate(task.twists(actions), start=1):
-        sim.step(tw)
-        if term_loss.active(k, len(actions)):
-            total += term_loss(task.step_state(sim), len(actions))[0]
+        total += sim.rollout(tw[None], term_loss, step_offset=k - 1, horizon=len(actions)).loss
         if k % every == 0 or k == len(actions):
             snap(k)
         if progress:

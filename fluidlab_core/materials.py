@@ -58,27 +58,34 @@ class Material:
     is_liquid: ClassVar[bool] = False
     is_rigid: ClassVar[bool] = False
 
-    # Parameters the kernels read, in this order: shear modulus μ (Pa), Lamé λ (Pa), two yield
-    # parameters whose meaning is the model's, dynamic viscosity η (Pa·s).
-    def kernel_params(self) -> tuple[float, float, float, float, float]:
+    def kernel_params(self) -> dict[str, float]:
+        """The parameters the kernels read, by the names the model declares (engine/constitutive.py), in SI
+        units. A material of a new model returns that model's names."""
         raise NotImplementedError
 
     @property
     def mu(self) -> float:
-        return self.kernel_params()[0]
+        """Shear modulus (Pa), 0 for materials without one."""
+        return float(self.kernel_params().get("mu", 0.0))
 
     @property
     def lam(self) -> float:
-        return self.kernel_params()[1]
+        """Lamé's first parameter (Pa); for liquids and rigid bodies the bulk modulus of their pressure law."""
+        return float(self.kernel_params().get("lam", 0.0))
 
     @property
     def viscosity(self) -> float:
-        return self.kernel_params()[4]
+        """Dynamic viscosity η (Pa·s), 0 for inviscid materials; sets the explicit viscous time-step limit."""
+        return float(self.kernel_params().get("eta", 0.0))
 
     def wave_speed(self) -> float:
-        """P-wave speed sqrt((λ + 2μ)/ρ) in m/s: the fastest signal the explicit solver must resolve."""
-        mu, lam = self.kernel_params()[:2]
-        return math.sqrt((lam + 2.0 * mu) / self.density)
+        """P-wave speed sqrt((λ + 2μ)/ρ) in m/s: the fastest signal the explicit solver must resolve. A material
+        of a model without μ and λ overrides this (the build's stability check calls it)."""
+        params = self.kernel_params()
+        if "lam" not in params and "mu" not in params:
+            raise NotImplementedError(f"{type(self).__name__} has no 'mu' or 'lam' parameter: override wave_speed() "
+                                      f"so that the stability check knows its fastest wave (m/s)")
+        return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
 
 
 @dataclass(frozen=True)
@@ -93,7 +100,7 @@ class Elastic(Material):
         _check_positive(self, density=self.density, shear_modulus=self.shear_modulus, lame_lambda=self.lame_lambda)
 
     def kernel_params(self):
-        return (self.shear_modulus, self.lame_lambda, 0.0, 0.0, 0.0)
+        return {"mu": self.shear_modulus, "lam": self.lame_lambda}
 
 
 @dataclass(frozen=True)
@@ -114,7 +121,7 @@ class Rigid(Material):
         _check_positive(self, density=self.density, bulk_modulus=self.bulk_modulus)
 
     def kernel_params(self):
-        return (0.0, self.bulk_modulus, 0.0, 0.0, 0.0)
+        return {"lam": self.bulk_modulus}
 
 
 @dataclass(frozen=True)
@@ -135,7 +142,8 @@ class Plastic(Material):
             raise ValueError(f"Plastic {self.name!r}: yield_compression must be < 1, got {self.yield_compression}")
 
     def kernel_params(self):
-        return (self.shear_modulus, self.lame_lambda, self.yield_compression, self.yield_stretch, 0.0)
+        return {"mu": self.shear_modulus, "lam": self.lame_lambda, "yield_compression": self.yield_compression,
+                "yield_stretch": self.yield_stretch}
 
 
 @dataclass(frozen=True)
@@ -155,7 +163,7 @@ class VonMisesPlastic(Material):
                         yield_stress=self.yield_stress)
 
     def kernel_params(self):
-        return (self.shear_modulus, self.lame_lambda, self.yield_stress, 0.0, 0.0)
+        return {"mu": self.shear_modulus, "lam": self.lame_lambda, "yield_stress": self.yield_stress}
 
 
 @dataclass(frozen=True)
@@ -171,7 +179,7 @@ class NewtonianLiquid(Material):
         _check_positive(self, density=self.density, bulk_modulus=self.bulk_modulus)
 
     def kernel_params(self):
-        return (0.0, self.bulk_modulus, 0.0, 0.0, 0.0)
+        return {"lam": self.bulk_modulus}
 
 
 @dataclass(frozen=True)
@@ -186,7 +194,7 @@ class ViscousLiquid(NewtonianLiquid):
         _check_positive(self, viscosity_pas=self.viscosity_pas)
 
     def kernel_params(self):
-        return (0.0, self.bulk_modulus, 0.0, 0.0, self.viscosity_pas)
+        return {"lam": self.bulk_modulus, "eta": self.viscosity_pas}
 
 
 # --- catalogue (paper values mapped by the similarity above) -------------------------------------------

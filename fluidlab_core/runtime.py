@@ -104,3 +104,15 @@ def numpy_real():
     import numpy as np
 
     return np.float64 if ensure_init().precision == "f64" else np.float32
+
+
+def scatter_copies() -> int:
+    """Per-thread grid copies for the scatters of the solvers (engine/transfer.py): one per CPU thread on the
+    CPU, 0 (atomic scatters) on CUDA. On the CPU, FLUIDLAB_SCATTER_COPIES overrides it (0 runs the GPU's atomic
+    code path, as the tests do; on a many-core CPU fewer copies than threads may be faster, docs/engine.md)."""
+    cfg = ensure_init()
+    if cfg.backend != "cpu":
+        return 0
+    if os.environ.get("FLUIDLAB_SCATTER_COPIES"):
+        return int(os.environ["FLUIDLAB_SCATTER_COPIES"])
+    return cfg.cpu_threads or os.cpu_count() or 1

@@ -267,8 +267,8 @@ class Scene:
         and recomputes 98 % of its steps once."""
         self.check()
         from fluidlab_core import runtime
-        from fluidlab_core.engine import statics
-        from fluidlab_core.engine.mpm import MPMSolver, SolverSpec
+        from fluidlab_core.engine.model import Model, ModelSpec
+        from fluidlab_core.engine.solver import FastSolver
         from fluidlab_core.simulator import Simulator
 
         config = runtime.ensure_init()
@@ -278,44 +278,22 @@ class Scene:
             if b.handle.material not in mats:
                 mats.append(b.handle.material)
         handles = [b.handle for b in self.bodies]
-        x = np.concatenate([b.points for b in self.bodies])
-        v = np.concatenate([b.velocity for b in self.bodies])
-        material_index = np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles])
-        body_index = np.concatenate([np.full(h.count, h.body) for h in handles])
-        rest_volume = np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies])
-        colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
-                                      0.01 * self.dx, self.dx) for st in self.statics]
-        from fluidlab_core.engine.tools import Tool
-
-        tools = [Tool(t, real, self.dx) for t in self.tools]
-        spec = SolverSpec(lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, gravity=self.gravity,
-                          wall_friction=self.wall_friction, x=x, v=v, material_index=material_index,
-                          body_index=body_index, rest_volume=rest_volume, materials=mats, colliders=colliders,
-                          tools=tools, body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0])
-        copies = 0
-        if config.backend == "cpu":
-            import os
-
-            copies = config.cpu_threads or os.cpu_count() or 1
-            # FLUIDLAB_SCATTER_COPIES=0 scatters atomically as on a GPU (tests use it to run the GPU code path;
-            # on a many-core CPU fewer copies than threads may be faster, see docs/engine.md)
-            if os.environ.get("FLUIDLAB_SCATTER_COPIES"):
-                copies = int(os.environ["FLUIDLAB_SCATTER_COPIES"])
-        solver = MPMSolver(spec, real, scatter_copies=copies)
+        spec = ModelSpec(
+            lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, substeps=self.substeps,
+            gravity=self.gravity, wall_friction=self.wall_friction,
+            x=np.concatenate([b.points for b in self.bodies]), v=np.concatenate([b.velocity for b in self.bodies]),
+            material_index=np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles]),
+            body_index=np.concatenate([np.full(h.count, h.body) for h in handles]),
+            rest_volume=np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies]),
+            materials=mats, statics=list(self.statics), tools=list(self.tools),
+            body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0])
+        model = Model(spec, real)
+        copies = runtime.scatter_copies()
+        solver = FastSolver(model, scatter_copies=copies)
         diff = None
         if requires_grad:
-            from fluidlab_core.engine.diff_mpm import DiffMPMSolver
+            from fluidlab_core.engine.diff_solver import DiffSolver, buffer_steps
 
-            real_bytes = np.dtype(runtime.numpy_real()).itemsize
-            # x, v, C, F and their gradients per particle and slot, plus the tools' slot fields, plus what the
-            # forward keeps for the backward per substep (DiffMPMSolver: the grid before and after its update, 7
-            # reals a node, and the stress and the gather's result, 15 reals a particle, 24 with rigid bodies)
-            slot_bytes = 2 * real_bytes * (24 * len(x) + 24 * max(len(tools), 1))
-            slot_bytes += real_bytes * (7 * int(np.prod(solver.grid_shape)) + (24 if solver.rigid else 15) * len(x))
-            steps = int(min(grad_max_steps, (grad_memory // slot_bytes - 1) // self.substeps))
-            if steps < 1:
-                raise ValueError(f"grad_memory={grad_memory:.3g} bytes holds no whole step of {self.substeps} substeps "
-                                 f"({slot_bytes * (self.substeps + 1):.3g} bytes for {len(x)} particles); raise it")
-            diff = DiffMPMSolver(solver, steps * self.substeps + 1)
-        return Simulator(self, solver, handles, config, diff=diff)
-
+            steps = buffer_steps(model, grad_memory, grad_max_steps)
+            diff = DiffSolver(model, steps * self.substeps + 1, scatter_copies=copies)
+        return Simulator(self, model, solver, model.state(), handles, config, diff=diff)

@@ -1,16 +1,21 @@
-"""The user-facing simulator returned by `Scene.build()`: stepping, reading particles, state round-trips."""
+"""The user-facing simulator returned by `Scene.build()`: stepping, rollouts, reading particles, state round trips.
+
+A Simulator holds the scene's Model (what does not change), the fast solver and its device state (one slot,
+stepped in place), and with `requires_grad=True` the differentiable solver. Every way of advancing it goes
+through the one rollout loop (engine/rollout.py): `step` is a rollout without a loss, `rollout(grad=False)`
+runs the fast solver, `rollout(grad=True)` the checkpointed differentiable one (engine/checkpoint.py) from
+the same state, and both end in the rollout's final state.
+"""
 from __future__ import annotations
 
 import numpy as np
 
 from fluidlab_core import runtime
+from fluidlab_core.engine import rollout as loop
+from fluidlab_core.engine import tools as T
+from fluidlab_core.engine.state import NonFiniteStateError, State
 
-
-class NonFiniteStateError(FloatingPointError):
-    """A particle field became NaN or infinite during a step."""
-
-
-_FIELD_BITS = ((1, "positions (x)"), (2, "velocities (v)"), (4, "deformation gradients (F)"))
+__all__ = ["Simulator", "NonFiniteStateError"]
 
 
 class Simulator:
@@ -19,18 +24,15 @@ class Simulator:
 
     positions(h)/velocities(h) return (N, 3) float64 arrays in the world frame (m, m/s) for a particle
     handle from `Scene.add_particles` (or its name). `get_state()`/`set_state()` round-trip the whole
-    particle state exactly.
+    state (a `State`) exactly.
     """
 
-    def __init__(self, scene, solver, handles, config, diff=None):
-        from fluidlab_core.engine.tools import ToolState
-
+    def __init__(self, scene, model, solver, state, handles, config, diff=None):
         self.scene = scene
-        self.solver = solver
-        self.diff = diff  # differentiable solver (engine/diff_mpm.py) when built with requires_grad=True
-        # fixed at build: the substep length is compiled into the kernels
-        self._dt, self._substeps = scene.dt, scene.substeps
-        self.tools = ToolState(scene.tools)
+        self.model = model  # engine/model.py: grid, materials, statics, tool shapes
+        self.solver = solver  # engine/solver.py: FastSolver
+        self.state = state  # engine/state.py: StateBuffer of one slot, stepped in place
+        self.diff = diff  # engine/diff_solver.py: DiffSolver, when built with requires_grad=True
         self.handles = {h.name: h for h in handles}
         self._config = config
         self.step_count = 0
@@ -42,20 +44,25 @@ class Simulator:
     @property
     def dt(self) -> float:
         """Seconds per step."""
-        return self._dt
+        return self.model.step_dt
 
     @property
     def substeps(self) -> int:
-        return self._substeps
+        return self.model.substeps
 
     @property
     def time(self) -> float:
         """Simulated time since the start or the last set_state (s)."""
-        return self.step_count * self._dt
+        return self.step_count * self.dt
 
     @property
     def n_particles(self) -> int:
-        return self.solver.n_particles
+        return self.model.n_particles
+
+    @property
+    def tool_specs(self) -> list:
+        """The tools as the scene describes them (engine/tools.ToolSpec)."""
+        return self.model.tool_specs
 
     def _check_alive(self):
         current = runtime.current()
@@ -71,36 +78,14 @@ class Simulator:
         tool's action mask are ignored. Returns info: {"clipped": {tool name: True if the workspace clipped
         its motion in any of these steps}}."""
         self._check_alive()
-        if action is not None and not self.tools.specs:
+        if action is not None and not self.tool_specs:
             raise ValueError("this scene has no tools, so step() takes no action")
-        velocities = self.tools.parse_action(action)
-        clipped = {spec.name: False for spec in self.tools.specs}
-        sub_dt = self._dt / self._substeps
-        n_tools = len(self.tools.specs)
-        # each substep's tool poses and twists go into the substep's own launch (MPMSolver.substep)
-        tool_state = np.zeros((max(n_tools, 1), 18), dtype=self.solver.np_real)
-        for _ in range(n):
-            v_step, hits = self.tools.clip(velocities, self._dt)
-            for spec, hit in zip(self.tools.specs, hits):
-                clipped[spec.name] |= hit
-            turn = self.tools.turns(v_step, sub_dt)
-            tool_state[:n_tools, 12:] = v_step
-            for _ in range(self._substeps):
-                tool_state[:n_tools, :3] = self.tools.position
-                tool_state[:n_tools, 3:12] = self.tools.rotation.reshape(n_tools, 9)
-                self.solver.substep(tool_state)
-                if self.solver.rigid is not None:
-                    self.solver.rigid.project()
-                    if self.solver.rigid.sdfs:
-                        self.solver.rigid.exclude()
-                self.tools.advance(v_step, sub_dt, turn)
-            self.step_count += 1
-            if self.check_finite_every and self.step_count % self.check_finite_every == 0:
-                self.check_finite()
-        return {"clipped": clipped}
+        twist = T.parse_action(self.tool_specs, action)
+        clipped, _ = self._run(np.repeat(twist[None], int(n), axis=0), {})
+        return {"clipped": {spec.name: bool(clipped[:, i].any()) for i, spec in enumerate(self.tool_specs)}}
 
     def rollout(self, actions, loss, grad: bool = False, segment_steps: int | None = None, checkpoint_dir=None,
-                progress=None):
+                progress=None, *, terms: dict | None = None, step_offset: int = 0, horizon: int | None = None):
         """Run len(actions) steps from the current state and return the loss (and its gradients).
 
         actions: (N, 6) for one tool or (N, n_tools, 6): tool twists per step as in `step` (N ≥ 1); for a scene
@@ -108,44 +93,62 @@ class Simulator:
         loss: a `fluidlab_core.losses.Loss`, evaluated after the steps it names.
         grad: False runs the fast forward solver; True runs the differentiable solver (build with
             requires_grad=True) with gradient checkpointing and returns the gradients with respect to every
-            action, the initial tool poses and the initial particle state (see checkpoint.RolloutResult).
+            action, the initial tool poses and the initial particle state (see rollout.RolloutResult).
         segment_steps: steps per checkpoint segment (default: as long as the buffer chosen at build allows, see
             checkpoint.plan_segments).
         checkpoint_dir: keep segment checkpoints in a private folder under this directory instead of in memory.
         progress: optional callable(phase, done, total), called once per step of each phase.
+        terms: {name: Loss} evaluated beside `loss` without gradients; their per-step values come back in
+            `result.terms[name]` (e.g. a task's reward term).
+        step_offset, horizon: the step numbers and horizon the losses see (default: the rollout's own steps
+            1 … N; an environment stepping one step at a time passes its episode's).
 
         The simulator ends in the rollout's final state, as after the same calls to `step`."""
-        from fluidlab_core.engine.checkpoint import RolloutResult, rollout_with_grad
-        from fluidlab_core.losses import Loss, StepState
+        from fluidlab_core.engine.checkpoint import rollout_with_grad
+        from fluidlab_core.losses import Loss
 
         self._check_alive()
         if not isinstance(loss, Loss):
             raise TypeError(f"loss must be a fluidlab_core.losses.Loss, got {type(loss).__name__}")
-        velocities = self._action_sequence(actions)
-        n_steps = len(velocities)
+        for name, term in (terms or {}).items():
+            if not isinstance(term, Loss) or name == "loss":
+                raise TypeError(f"terms must map names other than 'loss' to Loss objects, got {name!r}: "
+                                f"{type(term).__name__}")
+        twists = self._action_sequence(actions)
         if grad:
             if self.diff is None:
                 raise RuntimeError("this simulator was built without gradients: build(requires_grad=True) to "
                                    "call rollout(..., grad=True)")
-            return rollout_with_grad(self, self.diff, velocities, loss, True, segment_steps, checkpoint_dir, progress)
-        step_losses = np.zeros(n_steps)
-        clipped = np.zeros((n_steps, len(self.tools.specs)), dtype=bool)
-        for g in range(n_steps):
-            info = self.step(velocities[g] if self.tools.specs else None)
-            clipped[g] = [info["clipped"][s.name] for s in self.tools.specs]
-            if loss.active(g + 1, n_steps):
-                x, v = np.zeros((self.n_particles, 3)), np.zeros((self.n_particles, 3))
-                self.solver.read_xv(x, v)
-                state = StepState(g + 1, (g + 1) * self._dt, x, v, self.tools.position.copy(),
-                                  self.tools.rotation.copy())
-                step_losses[g], _ = loss(state, n_steps, grad=False)
+            if terms or step_offset or horizon is not None:
+                raise ValueError("rollout(grad=True) takes one loss over the rollout's own steps (no terms, "
+                                 "step_offset or horizon)")
+            result, final = rollout_with_grad(self.diff, self.get_state(), twists, loss, True, segment_steps,
+                                              checkpoint_dir, progress, on_nonfinite=self._raise_nonfinite)
+            self.set_state(final)
+            return result
+        clipped, values = self._run(twists, {"loss": loss, **(terms or {})}, progress, step_offset, horizon)
+        step_losses = values.pop("loss")
+        return loop.RolloutResult(float(step_losses.sum()), step_losses, clipped.any(axis=2), terms=values)
+
+    def _run(self, twists, losses, progress=None, step_offset=0, horizon=None):
+        """The fast solver through the rollout loop: (clipped (N, n_tools, 3), {name: per-step values})."""
+        position, _ = self.state.read_tools(0)
+        applied, clipped = T.plan(self.tool_specs, position, twists, self.dt, self.substeps)
+        start = self.step_count
+        stepper = loop.FastStepper(self.solver, self.state, self.dt, self.check_finite_every, self._raise_nonfinite,
+                                   first_step=start)
+
+        def tick(phase, done, total):
+            self.step_count = start + done
             if progress:
-                progress("forward", g + 1, n_steps)
-        return RolloutResult(float(step_losses.sum()), step_losses, clipped)
+                progress(phase, done, total)
+
+        values, _ = loop.run(stepper, applied, losses, step_offset=step_offset, horizon=horizon, progress=tick)
+        return clipped, values
 
     def _action_sequence(self, actions) -> np.ndarray:
         """(N, n_tools, 6) masked twists from the forms `rollout` accepts."""
-        n_tools = len(self.tools.specs)
+        n_tools = len(self.tool_specs)
         if isinstance(actions, (int, np.integer)):
             if actions < 1:
                 raise ValueError(f"a rollout needs at least one step, got {actions}")
@@ -160,26 +163,37 @@ class Simulator:
         if not np.all(np.isfinite(arr)):
             bad = np.argwhere(~np.isfinite(arr))[0]
             raise ValueError(f"actions contain NaN or infinity (first at step {bad[0]})")
-        return arr * np.array([s.action_mask for s in self.tools.specs], dtype=np.float64)
+        return arr * T.action_masks(self.tool_specs)
 
     def tool_pose(self, name: str) -> np.ndarray:
         """(x, y, z, qx, qy, qz, qw) of a tool's frame in the world (m)."""
-        names = [spec.name for spec in self.tools.specs]
+        names = [spec.name for spec in self.tool_specs]
         if name not in names:
             raise KeyError(f"no tool named {name!r}; tools: {', '.join(names) or 'none'}")
-        return self.tools.pose(names.index(name))
+        position, rotation = self.state.read_tools(0)
+        i = names.index(name)
+        return T.pose_of(position[i], rotation[i])
+
+    def step_state(self):
+        """What a loss sees of the current state (losses.StepState: float64 positions, velocities, tool poses)."""
+        from fluidlab_core.losses import StepState
+
+        x, v, tp, tR = self.state.read_steps([0])
+        return StepState(self.step_count, self.time, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0])
 
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
-        bits = int(self.solver.find_nonfinite())
-        if bits:
-            p = int(self.solver.bad_particle[None])
-            body = next(h for h in self.handles.values() if h.start <= p < h.start + h.count)
-            fields = ", ".join(name for bit, name in _FIELD_BITS if bits & bit)
-            raise NonFiniteStateError(
-                f"NaN or infinity in particle {fields} at step {self.step_count} (t = {self.time:.4g} s), "
-                f"first at particle {p} of body {body.name!r} ({body.material.name}). The explicit solver went "
-                f"unstable: use more substeps (smaller dt), a softer material, or lower speeds.")
+        fields, particle = self.state.nonfinite(0)
+        if fields:
+            self._raise_nonfinite(fields, particle, self.step_count)
+
+    def _raise_nonfinite(self, fields, p: int, step: int):
+        body = next((h for h in self.handles.values() if h.start <= p < h.start + h.count), None)
+        where = f"particle {p} of body {body.name!r} ({body.material.name})" if body else f"particle {p}"
+        raise NonFiniteStateError(
+            f"NaN or infinity in particle {', '.join(fields)} at step {step} (t = {step * self.dt:.4g} s), "
+            f"first at {where}. The explicit solver went unstable: use more substeps (smaller dt), a softer "
+            f"material, or lower speeds.")
 
     # --- reading ----------------------------------------------------------------------------------------
     def handle(self, h):
@@ -190,39 +204,41 @@ class Simulator:
                 raise KeyError(f"no particle body named {h!r}; bodies: {', '.join(self.handles)}") from None
         return h
 
-    def _rows(self, field, h):
-        data = field.to_numpy()
+    def _rows(self, data, h):
         return (data if h is None else data[self.handle(h).slice]).astype(np.float64)
 
     def positions(self, h=None) -> np.ndarray:
         """(N, 3) particle positions (m) of body `h` (all particles if None)."""
-        return self._rows(self.solver.x, h)
+        return self._rows(self.state.x.to_numpy()[0], h)
 
     def velocities(self, h=None) -> np.ndarray:
         """(N, 3) particle velocities (m/s)."""
-        return self._rows(self.solver.v, h)
+        return self._rows(self.state.v.to_numpy()[0], h)
 
     def deformation_gradients(self, h=None) -> np.ndarray:
-        return self._rows(self.solver.F, h)
+        return self._rows(self.state.F.to_numpy()[0], h)
 
     def volumes(self, h=None) -> np.ndarray:
         """Current particle volumes V⁰·det F (m³)."""
-        rest = self._rows(self.solver.rest_volume, h)
+        rest = self._rows(self.model.rest_volume.to_numpy(), h)
         return rest * np.linalg.det(self.deformation_gradients(h))
+
+    def stresses(self, h=None) -> np.ndarray:
+        """(N, 3, 3) Cauchy stress σ of each particle (Pa), from its constitutive model at its current F and C."""
+        return self._rows(self.solver.stresses(self.state), h)
 
     def pressures(self, h=None) -> np.ndarray:
         """Cauchy pressure −tr(σ)/3 of each particle (Pa)."""
-        self.solver.compute_pressure()
-        return self._rows(self.solver.pressure, h)
+        return -np.trace(self.stresses(h), axis1=1, axis2=2) / 3.0
 
     def masses(self, h=None) -> np.ndarray:
-        return self._rows(self.solver.mass, h)
+        return self._rows(self.model.mass.to_numpy(), h)
 
     # --- pictures ---------------------------------------------------------------------------------------
     def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None):
         """A PNG picture of the current state (particles coloured by material, statics in grey and cut away on
-        the camera's side, the domain box drawn), written to `path` if given; returns the image as an (H, W, 3) uint8 array. `view` is a
-        name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg)."""
+        the camera's side, the domain box drawn), written to `path` if given; returns the image as an (H, W, 3)
+        uint8 array. `view` is a name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg)."""
         from fluidlab_core.render import Layer, render, view_axes
 
         if self._static_points is None:
@@ -232,10 +248,11 @@ class Simulator:
         centre = 0.5 * (self.scene.lower + self.scene.upper)
         layers = []
         if self._tool_points is None:
-            self._tool_points = [spec.shape.sample(0.5 * self.scene.dx) for spec in self.tools.specs]
-        for i, (spec, local) in enumerate(zip(self.tools.specs, self._tool_points)):
+            self._tool_points = [spec.shape.sample(0.5 * self.scene.dx) for spec in self.tool_specs]
+        position, rotation = self.state.read_tools(0)
+        for i, (spec, local) in enumerate(zip(self.tool_specs, self._tool_points)):
             if len(local):
-                layers.append(Layer(local @ self.tools.rotation[i].T + self.tools.position[i], spec.color, spec.name))
+                layers.append(Layer(local @ rotation[i].T + position[i], spec.color, spec.name))
         for st, points in zip(self.scene.statics, self._static_points):
             behind = points[(points - centre) @ toward < 0.0]
             if len(behind):
@@ -247,23 +264,15 @@ class Simulator:
         return render(layers, path, view=view, bounds=(self.scene.lower, self.scene.upper), size=size, title=title)
 
     # --- state ------------------------------------------------------------------------------------------
-    def get_state(self) -> dict:
-        """A copy of the particle state (x, v, C, F as numpy arrays in the solver's precision) and the step."""
-        s = self.solver
-        return {"x": s.x.to_numpy(), "v": s.v.to_numpy(), "C": s.C.to_numpy(), "F": s.F.to_numpy(),
-                "tool_position": self.tools.position.copy(), "tool_rotation": self.tools.rotation.copy(),
-                "step": self.step_count}
+    def get_state(self) -> State:
+        """A copy of the whole state: particles (x, v, C, F in the solver's precision), tool poses (float64) and
+        the step count."""
+        return self.state.read(0, step=self.step_count)
 
-    def set_state(self, state: dict):
+    def set_state(self, state: State):
         """Restore a state from `get_state()` exactly."""
-        s = self.solver
-        for key, field in (("x", s.x), ("v", s.v), ("C", s.C), ("F", s.F)):
-            arr = np.asarray(state[key])
-            if arr.ndim == 0 or arr.shape[0] != s.n_particles:
-                raise ValueError(f"state[{key!r}] has {arr.shape[0]} rows, this scene has {s.n_particles} particles")
-            field.from_numpy(arr.astype(s.np_real))
-        if "tool_position" in state:
-            self.tools.position[:] = state["tool_position"]
-            self.tools.rotation[:] = state["tool_rotation"]
-        self.step_count = int(state.get("step", 0))
-
+        if not isinstance(state, State):
+            raise TypeError(f"set_state takes a State (from get_state()), got {type(state).__name__}")
+        state.check_shapes(self.n_particles, len(self.tool_specs))
+        self.state.write(0, state)
+        self.step_count = int(state.step)

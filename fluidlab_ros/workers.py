@@ -3,7 +3,7 @@
 Both run fluidlab_core (Taichi) in a process of their own, started with the "spawn" method (a fork of a
 process with DDS threads is unsafe), so the node's executor and its 500 Hz command stream never wait on a
 simulation. They talk to the node through multiprocessing queues of plain dicts and numpy arrays; the node
-holds no physics (DESIGN.md §2).
+holds no physics (docs/design.md §2).
 
 optimise_worker: runs fluidlab_core.optim.optimise and puts {"kind": "feedback", ...} per iteration and one
   {"kind": "result", ...} or {"kind": "error", ...}. A set `stop` event ends it at the next iteration (the
@@ -76,7 +76,7 @@ def scene_description(sim) -> dict:
         colors[h.slice] = np.round(255 * np.asarray(h.material.color)).astype(np.uint8)
     dx = sim.scene.dx
     statics = [(st.name, st.shape.sample(dx).astype(np.float32)) for st in sim.scene.statics]
-    tools = [(spec.name, spec.shape.sample(0.5 * dx).astype(np.float32), tuple(spec.color)) for spec in sim.tools.specs]
+    tools = [(spec.name, spec.shape.sample(0.5 * dx).astype(np.float32), tuple(spec.color)) for spec in sim.tool_specs]
     return {"colors": colors, "statics": statics, "tools": tools, "dx": float(dx)}
 
 

@@ -73,13 +73,13 @@ def test_state_round_trip_is_exact():
     sim.set_state(state)
     again = sim.get_state()
     for key in ("x", "v", "C", "F"):
-        np.testing.assert_array_equal(again[key], state[key])
+        np.testing.assert_array_equal(getattr(again, key), getattr(state, key))
     assert sim.step_count == 5
     sim.step(n=5)
     # parallel float atomics may add in another order: equal to float32 round-off, not bit for bit
     np.testing.assert_allclose(sim.positions("water"), after, atol=1e-6)
     with pytest.raises(ValueError, match="rows"):
-        sim.set_state({"x": state["x"][:3], "v": state["v"], "C": state["C"], "F": state["F"]})
+        sim.set_state(state.replace(x=state.x[:3]))
 
 
 def test_unstable_time_step_is_refused_with_the_numbers_and_the_fix():
@@ -134,7 +134,7 @@ def test_nan_raises_an_error_naming_field_and_step():
     sim = scene.build()
     sim.step(n=2)
     state = sim.get_state()
-    state["v"][7] = np.nan
+    state.v[7] = np.nan
     sim.set_state(state)
     with pytest.raises(NonFiniteStateError) as err:
         sim.step()
@@ -171,7 +171,7 @@ for precision in ("f64", "f32"):
     sim = scene.build()
     sim.step(n=20)
     out[precision] = sim.positions()
-    assert sim.solver.x.dtype == (fl.runtime.real_dtype())
+    assert sim.state.x.dtype == (fl.runtime.real_dtype())
 err = np.abs(out["f64"] - out["f32"]).max()
 assert err < 1e-4, err
 print("max difference", err)

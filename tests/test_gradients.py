@@ -56,20 +56,26 @@ def build_scene():
     # a shear flow in every body: a body in uniform motion keeps F exactly isotropic, where the SVD backward
     # drops the symmetric shear response of the plastic models (engine/svd.py)
     state = sim.get_state()
-    x = state["x"].astype(np.float64)
-    state["v"] = state["v"] + np.stack([3.0 * (x[:, 2] - 0.02), 2.0 * (x[:, 0] - 0.06), 1.5 * (x[:, 1] - 0.03)], axis=1)
+    x = state.x.astype(np.float64)
+    state.v = state.v + np.stack([3.0 * (x[:, 2] - 0.02), 2.0 * (x[:, 0] - 0.06), 1.5 * (x[:, 1] - 0.03)], axis=1)
     sim.set_state(state)
     return sim
+
+
+def build_problem(sim):
+    """The loss (a random linear functional of every step's state plus a tool distance) and the random actions
+    of the checks (also bench/gradient_regression.py's)."""
+    rng = np.random.default_rng(0)
+    n = sim.n_particles
+    loss = (losses.Linear(a=rng.normal(size=(n, 3)), b=rng.normal(size=(n, 3)), steps="all")
+            + losses.ToolDistance((0.05, 0.05, 0.05), tool=0))
+    return loss, rng.normal(scale=0.1, size=(N_STEPS, 2, 6))
 
 
 @pytest.fixture(scope="module")
 def setup(f64):
     sim = build_scene()
-    rng = np.random.default_rng(0)
-    n = sim.n_particles
-    loss = (losses.Linear(a=rng.normal(size=(n, 3)), b=rng.normal(size=(n, 3)), steps="all")
-            + losses.ToolDistance((0.05, 0.05, 0.05), tool=0))
-    actions = rng.normal(scale=0.1, size=(N_STEPS, 2, 6))
+    loss, actions = build_problem(sim)
     start = sim.get_state()
     result = sim.rollout(actions, loss, grad=True, segment_steps=2)
     return sim, loss, actions, start, result
@@ -77,7 +83,7 @@ def setup(f64):
 
 def forward_loss(sim, state, actions, loss):
     sim.set_state(state)
-    return rollout_with_grad(sim, sim.diff, sim._action_sequence(actions), loss, grad=False).loss
+    return rollout_with_grad(sim.diff, state, sim._action_sequence(actions), loss, grad=False)[0].loss
 
 
 def central_difference(f):
@@ -99,9 +105,7 @@ def test_initial_velocity_gradient_per_material(setup, body):
     d[h.slice] = np.random.default_rng(1).normal(size=(h.count, 3))
 
     def f(e):
-        state = dict(start)
-        state["v"] = start["v"] + e * d
-        return forward_loss(sim, state, actions, loss)
+        return forward_loss(sim, start.replace(v=start.v + e * d), actions, loss)
 
     check(f"initial velocities of {body}", central_difference(f), float(np.sum(result.grad_velocities * d)))
 
@@ -121,9 +125,7 @@ def test_initial_tool_pose_gradient(setup):
     dp = rng.normal(size=(2, 3))
 
     def moved(e):
-        state = dict(start)
-        state["tool_position"] = start["tool_position"] + e * dp
-        return forward_loss(sim, state, actions, loss)
+        return forward_loss(sim, start.replace(tool_position=start.tool_position + e * dp), actions, loss)
 
     check("initial tool positions", central_difference(moved), float(np.sum(result.grad_tool_position * dp)))
     from scipy.spatial.transform import Rotation
@@ -131,10 +133,8 @@ def test_initial_tool_pose_gradient(setup):
     dtheta = rng.normal(size=(2, 3))
 
     def turned(e):
-        state = dict(start)
-        state["tool_rotation"] = np.stack([Rotation.from_rotvec(e * dtheta[k]).as_matrix() @ start["tool_rotation"][k]
-                                           for k in range(2)])
-        return forward_loss(sim, state, actions, loss)
+        turn = np.stack([Rotation.from_rotvec(e * dtheta[k]).as_matrix() @ start.tool_rotation[k] for k in range(2)])
+        return forward_loss(sim, start.replace(tool_rotation=turn), actions, loss)
 
     check("initial tool rotations", central_difference(turned), float(np.sum(result.grad_tool_rotation * dtheta)))
 
@@ -173,8 +173,8 @@ def test_differentiable_forward_matches_fast_solver(setup):
     sim.set_state(start)
     sim.rollout(actions, loss, grad=True)
     end_diff = sim.get_state()
-    assert end_diff["step"] == end_fast["step"] == start["step"] + N_STEPS
-    np.testing.assert_allclose(end_diff["x"], end_fast["x"], atol=1e-10)
+    assert end_diff.step == end_fast.step == start.step + N_STEPS
+    np.testing.assert_allclose(end_diff.x, end_fast.x, atol=1e-10)
 
 
 def test_nonfinite_loss_gradient_names_the_step(setup):
@@ -212,7 +212,7 @@ def test_rollout_refusals(setup):
         sim.rollout(np.zeros((3, 2, 6)), loss, grad=True, segment_steps=10_000)
     with pytest.raises(TypeError, match="Loss"):
         sim.rollout(np.zeros((3, 2, 6)), lambda s: 0.0)
-    assert sim.get_state()["step"] == start["step"], "a refused rollout does not step"
+    assert sim.get_state().step == start.step, "a refused rollout does not step"
 
 
 def test_segments_fill_the_buffer():
@@ -253,11 +253,11 @@ def test_atomic_scatter_path_matches_finite_differences(f64, monkeypatch):
     result = sim.rollout(actions, loss, grad=True)
     for what, direction in (("actions", rng.normal(size=actions.shape)), ("velocities", rng.normal(size=(n, 3)))):
         def at(eps):
-            state, acts = dict(start), actions
+            state, acts = start, actions
             if what == "actions":
                 acts = actions + eps * direction
             else:
-                state["v"] = start["v"] + eps * direction
+                state = start.replace(v=start.v + eps * direction)
             return forward_loss(sim, state, acts, loss)
 
         fd = (at(EPS) - at(-EPS)) / (2 * EPS)

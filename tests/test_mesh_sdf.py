@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fluidlab_core.engine.mesh_sdf import SDFGrid, load_mesh, mesh_sdf_grid, sample_mesh_volume
+from fluidlab_core.shapes.mesh_sdf import SDFGrid, load_mesh, mesh_sdf_grid, sample_mesh_volume
 
 RADIUS = 0.05  # sphere radius [m]
 BOX_EXTENTS = (0.10, 0.06, 0.04)  # box edge lengths [m]

@@ -24,12 +24,12 @@ def _vortex_decay_rate(material, res=24, size=0.1, amplitude=0.1, duration=0.2, 
         sx, cx, sz, cz = np.sin(k * x[:, 0]), np.cos(k * x[:, 0]), np.sin(k * x[:, 2]), np.cos(k * x[:, 2])
         return np.stack([sx * cz, np.zeros_like(sx), -cx * sz], axis=1), (sx, cx, sz, cz)
 
-    shape, (sx, cx, sz, cz) = mode(state["x"].astype(np.float64))
-    state["v"][:] = amplitude * shape
+    shape, (sx, cx, sz, cz) = mode(state.x.astype(np.float64))
+    state.v[:] = amplitude * shape
     grad = np.zeros((len(sx), 3, 3))  # APIC affine velocity C = ∇v
     grad[:, 0, 0], grad[:, 0, 2] = amplitude * k * cx * cz, -amplitude * k * sx * sz
     grad[:, 2, 0], grad[:, 2, 2] = amplitude * k * sx * sz, -amplitude * k * cx * cz
-    state["C"][:] = grad
+    state.C[:] = grad
     sim.set_state(state)
     times, amplitudes = [], []
     while sim.time <= duration:

@@ -30,14 +30,14 @@ def test_contact_law_at_the_grid_nodes(softness):
     scene = _plate_scene(softness, bottom)
     sim = scene.build()
     sim.step(np.array([0.0, 0.0, -u, 0.0, 0.0, 0.0]))
-    solver = sim.solver
+    solver, model = sim.solver, sim.model
     mass, vel = solver.grid_m.to_numpy(), solver.grid_v.to_numpy()
     idx = np.argwhere(mass > 0)
-    z = solver.origin[2] + idx[:, 2] * solver.dx
+    z = model.origin[2] + idx[:, 2] * model.dx
     # the plate's bottom face was at `bottom` during the substep (its pose is written before it moves)
     phi = bottom - z
     measured = -vel[idx[:, 0], idx[:, 1], idx[:, 2], 2] / u
-    inner = (np.abs(solver.origin[0] + idx[:, 0] * solver.dx - 0.05) < 0.03)  # away from the domain walls
+    inner = (np.abs(model.origin[0] + idx[:, 0] * model.dx - 0.05) < 0.03)  # away from the domain walls
     if softness is None:
         expected = (phi < 0).astype(float)
     else:

@@ -1,27 +1,42 @@
-"""Constitutive models: one Taichi hook per model, returning the projected F and the Kirchhoff stress.
+"""Constitutive models: named parameters and one Taichi function per model, returning (projected F, τ).
 
 Notation: F deformation gradient (after the substep update F ← (I + Δt C) F), C the APIC affine velocity
-(≈ ∇v, 1/s), J = det F, F = U Σ Vᵀ its SVD, R = U Vᵀ. Parameters (μ, λ, y1, y2, η) come from
-`Material.kernel_params()` (Pa, Pa, model-specific, model-specific, Pa·s). Every model returns Kirchhoff
-stress τ = J σ (Pa), which P2G multiplies by the rest volume V⁰.
+(≈ ∇v, 1/s), J = det F, F = U Σ Vᵀ its SVD, R = U Vᵀ. Every model returns the Kirchhoff stress τ = J σ
+(Pa), which P2G multiplies by the rest volume V⁰.
 
-- fixed_corotated (elastic):            τ = 2μ (F − R) Fᵀ + λ J (J − 1) I              [Stomakhin 2012]
-- rigid (between projections):          τ = λ J (J − 1) I; rigid.py keeps F = R J^(1/3)
-- corotated_box_yield (plastic):        Σ ← clamp(Σ, 1 − y1, 1 + y2), F ← U Σ Vᵀ, then fixed-corotated
-                                                                                        [Stomakhin 2013]
-- von_mises (ice cream, plasticine):    ε = ln Σ, ε̂ = dev ε; if |ε̂| > sqrt(2/3)·σ_y/(2μ) project ε̂ onto
-                                        the yield surface (perfect plasticity), F ← U exp(ε) Vᵀ,
-                                        τ = U (2μ ε + λ tr(ε) I) Uᵀ          [Klár 2016, Huang 2021]
-- liquid (weakly compressible):         J ← det F, F ← J^(1/3) I, τ = λ J (J − 1) I, i.e. pressure
-                                        p = −λ (J − 1)                          [Tampubolon 2017, FluidLab]
-- viscous_liquid:                       liquid + τ_v = η J (C + Cᵀ − ⅔ tr(C) I) = 2 η J dev(sym ∇v)
+- fixed_corotated (elastic), (μ, λ):          τ = 2μ (F − R) Fᵀ + λ J (J − 1) I              [Stomakhin 2012]
+- rigid (between projections), (λ):           τ = λ J (J − 1) I; rigid.py keeps F = R J^(1/3)
+- corotated_box_yield (plastic), (μ, λ, y₁, y₂): Σ ← clamp(Σ, 1 − y₁, 1 + y₂), F ← U Σ Vᵀ, then
+                                              fixed-corotated                                [Stomakhin 2013]
+- von_mises (ice cream, plasticine), (μ, λ, σ_y): ε = ln Σ, ε̂ = dev ε; if |ε̂| > sqrt(2/3)·σ_y/(2μ)
+                                              project ε̂ onto the yield surface (perfect plasticity),
+                                              F ← U exp(ε) Vᵀ, τ = U (2μ ε + λ tr(ε) I) Uᵀ   [Klár 2016, Huang 2021]
+- liquid (weakly compressible), (λ):          J ← det F, F ← J^(1/3) I, τ = λ J (J − 1) I, i.e. pressure
+                                              p = −λ (J − 1)                          [Tampubolon 2017, FluidLab]
+- viscous_liquid, (λ, η):                     liquid + τ_v = η J (C + Cᵀ − ⅔ tr(C) I) = 2 η J dev(sym ∇v)
 
-The solver unrolls the models present in a scene with `ti.static`, so a scene of liquids never pays for an
-SVD. Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models in `NO_SVD`), so that
-the differentiable solver can compute it in a kernel of its own whose gradient is written by hand
-(svd.py) while the forward solver computes it inline.
+Parameters are named, in SI units (μ, λ, σ_y in Pa; y₁, y₂ dimensionless; η in Pa·s). A model declares its
+parameter names when it is registered, and the solvers keep one Taichi struct field per model present in a
+scene (`Model.params`), so a model may have any number of parameters: the kernels read `prm.mu`, never a
+position. A material (materials.py) names its model and gives the values (`Material.kernel_params()`).
+
+Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models registered with
+needs_svd=False), so that the differentiable solver can compute it in a kernel of its own whose gradient is
+written by hand (svd.py), while the forward kernels compute it inline (`stress`). The solvers unroll the
+models present in a scene with `ti.static`, so a scene of liquids never pays for an SVD.
+
+Adding a model: write the function with Taichi's autodiff rules in mind (whole-matrix updates, no local
+written inside a branch, `statics.safe_norm` for norms that can be zero) and register it:
+
+    @constitutive.register("my_model", params=("mu", "lam", "k1"), needs_svd=True)
+    @ti.func
+    def my_model(F, C, prm, U, sig, V): ...            # -> (F_new, tau)
+
+docs/extending.md walks through it.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import taichi as ti
 
@@ -31,35 +46,77 @@ from fluidlab_core.engine import svd as svd3
 _MIN_STRETCH = 0.05
 
 
+@dataclass(frozen=True)
+class ConstitutiveModel:
+    """A registered model: its name, its parameter names (the struct the kernels read) and its function."""
+
+    name: str
+    params: tuple[str, ...]
+    needs_svd: bool
+    func: object  # ti.func (F, C, prm, U, sig, V) -> (F_new, tau)
+
+
+MODELS: dict[str, ConstitutiveModel] = {}
+
+
+def register(name: str, params, needs_svd: bool):
+    """Decorator registering a Taichi function as constitutive model `name` with the named parameters."""
+    params = tuple(params)
+    if not params or not all(isinstance(p, str) and p.isidentifier() for p in params):
+        raise ValueError(f"constitutive model {name!r}: params must be one or more identifiers, got {params!r}")
+    if len(set(params)) != len(params):
+        raise ValueError(f"constitutive model {name!r}: repeated parameter names in {params!r}")
+
+    def wrap(func):
+        old = MODELS.get(name)
+        if old is not None and old.func is not func:
+            raise ValueError(f"a constitutive model named {name!r} is already registered")
+        MODELS[name] = ConstitutiveModel(name, params, bool(needs_svd), func)
+        return func
+
+    return wrap
+
+
+def get(name: str) -> ConstitutiveModel:
+    try:
+        return MODELS[name]
+    except KeyError:
+        raise KeyError(f"unknown constitutive model {name!r}; registered: {', '.join(sorted(MODELS))}") from None
+
+
+@register("fixed_corotated", params=("mu", "lam"), needs_svd=True)
 @ti.func
 def fixed_corotated(F, C, prm, U, sig, V):
     """Elastic: F unchanged, fixed-corotated Kirchhoff stress."""
     R = U @ V.transpose()
     J = F.determinant()
-    tau = 2.0 * prm[0] * (F - R) @ F.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    tau = 2.0 * prm.mu * (F - R) @ F.transpose() + ti.Matrix.identity(float, 3) * (prm.lam * J * (J - 1.0))
     return F, tau
 
 
+@register("corotated_box_yield", params=("mu", "lam", "yield_compression", "yield_stretch"), needs_svd=True)
 @ti.func
 def corotated_box_yield(F, C, prm, U, sig, V):
     """Plastic: clamp principal stretches to [1 - y1, 1 + y2], then fixed-corotated stress."""
     # clamped stretches built as a new matrix: Taichi's reverse mode mishandles element writes to a local
-    s = ti.Vector([ti.min(ti.max(sig[d, d], 1.0 - prm[2]), 1.0 + prm[3]) for d in ti.static(range(3))])
+    s = ti.Vector([ti.min(ti.max(sig[d, d], 1.0 - prm.yield_compression), 1.0 + prm.yield_stretch)
+                   for d in ti.static(range(3))])
     Fp = U @ ti.Matrix([[s[0], 0.0, 0.0], [0.0, s[1], 0.0], [0.0, 0.0, s[2]]]) @ V.transpose()
     R = U @ V.transpose()
     J = s[0] * s[1] * s[2]
-    tau = 2.0 * prm[0] * (Fp - R) @ Fp.transpose() + ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    tau = 2.0 * prm.mu * (Fp - R) @ Fp.transpose() + ti.Matrix.identity(float, 3) * (prm.lam * J * (J - 1.0))
     return Fp, tau
 
 
+@register("von_mises", params=("mu", "lam", "yield_stress"), needs_svd=True)
 @ti.func
 def von_mises(F, C, prm, U, sig, V):
-    """Hencky-strain St. Venant–Kirchhoff with von Mises return mapping (uniaxial yield stress y1)."""
-    mu, lam = prm[0], prm[1]
+    """Hencky-strain St. Venant–Kirchhoff with von Mises return mapping (uniaxial yield stress σ_y)."""
+    mu, lam = prm.mu, prm.lam
     eps = ti.Vector([ti.log(ti.max(ti.abs(sig[d, d]), _MIN_STRETCH)) for d in ti.static(range(3))])
     eps_hat = eps - eps.sum() / 3.0
     eps_hat_norm = ti.sqrt(eps_hat.dot(eps_hat) + 1e-30)  # finite derivative at 0
-    yield_strain = ti.sqrt(2.0 / 3.0) * prm[2] / (2.0 * mu)
+    yield_strain = ti.sqrt(2.0 / 3.0) * prm.yield_stress / (2.0 * mu)
     # return mapping without a branch (Taichi's reverse mode mishandles a local updated inside one)
     eps = eps - ti.max(0.0, 1.0 - yield_strain / eps_hat_norm) * eps_hat
     Fp = U @ ti.Matrix([[ti.exp(eps[0]), 0.0, 0.0], [0.0, ti.exp(eps[1]), 0.0], [0.0, 0.0, ti.exp(eps[2])]]) \
@@ -70,55 +127,51 @@ def von_mises(F, C, prm, U, sig, V):
 
 
 @ti.func
-def liquid(F, C, prm, U, sig, V):
-    """Weakly compressible liquid: keep only the volume part of F; pressure from J."""
+def _liquid(F, lam):
+    """Weakly compressible liquid: the volume part of F, and the pressure from J."""
     J = F.determinant()
     Fp = ti.Matrix.identity(float, 3) * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0)
-    tau = ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    tau = ti.Matrix.identity(float, 3) * (lam * J * (J - 1.0))
     return Fp, tau
 
 
+@register("liquid", params=("lam",), needs_svd=False)
+@ti.func
+def liquid(F, C, prm, U, sig, V):
+    """Weakly compressible liquid: keep only the volume part of F; pressure from J."""
+    return _liquid(F, prm.lam)
+
+
+@register("viscous_liquid", params=("lam", "eta"), needs_svd=False)
 @ti.func
 def viscous_liquid(F, C, prm, U, sig, V):
     """Liquid plus deviatoric Newtonian viscous stress."""
-    Fp, tau = liquid(F, C, prm, U, sig, V)
+    Fp, tau = _liquid(F, prm.lam)
     J = F.determinant()
-    tau += prm[4] * J * (C + C.transpose() - (2.0 / 3.0) * C.trace() * ti.Matrix.identity(float, 3))
+    tau += prm.eta * J * (C + C.transpose() - (2.0 / 3.0) * C.trace() * ti.Matrix.identity(float, 3))
     return Fp, tau
 
 
+@register("rigid", params=("lam",), needs_svd=False)
 @ti.func
 def rigid(F, C, prm, U, sig, V):
     """Rigid body particle: F is set by the rigid projection; only its volume change is resisted."""
     J = F.determinant()
-    return F, ti.Matrix.identity(float, 3) * (prm[1] * J * (J - 1.0))
+    return F, ti.Matrix.identity(float, 3) * (prm.lam * J * (J - 1.0))
 
 
-MODELS = {
-    "rigid": rigid,
-    "fixed_corotated": fixed_corotated,
-    "corotated_box_yield": corotated_box_yield,
-    "von_mises": von_mises,
-    "liquid": liquid,
-    "viscous_liquid": viscous_liquid,
-}
-
-# models whose stress needs no SVD of F (the solvers skip it for them)
-NO_SVD = frozenset({"rigid", "liquid", "viscous_liquid"})
-
-
-def with_svd(name: str):
-    """Model `name` as a function of (F, C, prm) that computes the SVD of F itself when it needs one."""
-    model = MODELS[name]
-    needs_svd = name not in NO_SVD
+def with_svd(model: ConstitutiveModel):
+    """`model` as a function of (F, C, prm) that computes the SVD of F itself when it needs one (forward
+    kernels)."""
+    func, needs_svd = model.func, model.needs_svd
 
     @ti.func
-    def func(F, C, prm):
+    def stress(F, C, prm):
         U = ti.Matrix.zero(float, 3, 3)
         sig = ti.Matrix.zero(float, 3, 3)
         V = ti.Matrix.zero(float, 3, 3)
         if ti.static(needs_svd):
             U, sig, V = svd3.svd(F)
-        return model(F, C, prm, U, sig, V)
+        return func(F, C, prm, U, sig, V)
 
-    return func
+    return stress

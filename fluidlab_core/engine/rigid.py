@@ -1,9 +1,10 @@
 """Rigid bodies made of particles: projection to the best rigid motion (shape matching).
 
-After each substep the particles of body b (masses m_i, rest offsets q_i from the rest centre of mass)
-are replaced by the rigid motion closest to what the MPM step produced (Müller et al. 2005):
+After each substep's G2P the particles of body b (masses m_i, rest offsets q_i from the rest centre of
+mass) are replaced by the rigid motion closest to what the MPM step produced (Müller et al. 2005):
     c = Σ m x / M,  v_c = Σ m v / M                      (linear momentum kept)
-    A = Σ m (x − c) qᵀ,  R = polar(A)                    (best rotation)
+    A = Σ m (x − c) qᵀ,  R = polar(A) = U Vᵀ with U Σ Vᵀ = A/|A|   (best rotation; A scaled to norm 1 first,
+                                                          its entries ~ m q² broke a float32 SVD)
     L = Σ m (x − c) × v,  I = Σ m (|r|² 1 − r rᵀ), r = R q,  ω = I⁻¹ L   (angular momentum kept)
     J ← J (1 + Δt tr C_grid),  x ← c + R q,  v ← v_c + ω × r,  C ← [ω]×,  F ← R J^(1/3)
 J tracks the volume change the grid flow imposes on the body (tr C = div v, taken before C is replaced):
@@ -16,6 +17,9 @@ every particle of another body found inside body b, by b's own SDF in its curren
 (φ(Rᵀ(x − c) + c⁰) < 0), is put back on b's surface and loses its velocity into b relative to b's motion.
 This one-way push does not act back on b; the grid coupling carries the forces.
 
+Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
+conserves momentum.
+
 Known limitation, measured in the buoyancy set-up (tests/test_physics_solids.py, 7.5 mm cells): floating
 blocks start at Archimedes' depth but sink relative to the surface by about 2.5 mm/s, and the far-field water
 surface drops by about 1 mm/s while they float; without rigid bodies the same water keeps its level. In a
@@ -25,10 +29,11 @@ elastic strain or reset as here, and with or without the exclusion step: the pro
 cause. A likely mechanism: snapping the supported bottom particles to the body's mean (downward) velocity
 pushes them into the liquid every substep, so liquid is squeezed out from under the body. Still open.
 
-Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
-conserves momentum.
+Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
+masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
+projection, as one kernel in a forward pass (`forward`) and as separate kernels, built from the same
+per-particle and per-body functions, where Taichi's autodiff differentiates them (`kernels`, `write`).
 """
-from __future__ import annotations
 
 import numpy as np
 import taichi as ti
@@ -40,115 +45,265 @@ MAX_EXCLUDING_BODIES = 16
 
 
 @ti.data_oriented
-class RigidBodies:
-    def __init__(self, solver, body_index: np.ndarray, real, shapes=None, dx: float = 0.0):
+class RigidModel:
+    """The rigid bodies' constant data: body of each particle, rest offsets, rest centres, masses, SDFs."""
+
+    def __init__(self, body_index: np.ndarray, x_rest: np.ndarray, mass: np.ndarray, real, shapes=None,
+                 dx: float = 0.0):
         """shapes: each body's Shape in its rest pose (world coordinates), for the exclusion step."""
-        self.solver = solver
+        body_index = np.asarray(body_index)
         n_bodies = int(body_index.max()) + 1
         self.n_bodies = n_bodies
         n = len(body_index)
+        np_real = np.float64 if real == ti.f64 else np.float32
         self.body = ti.field(ti.i32, shape=n)  # body of each particle, −1 for none
         self.rest_offset = ti.Vector.field(3, real, shape=n)  # q: rest position − rest centre of mass (m)
-        self.mass = ti.field(real, shape=n_bodies)  # kg
-        self.com = ti.Vector.field(3, real, shape=n_bodies)  # centre of mass (m)
-        self.momentum = ti.Vector.field(3, real, shape=n_bodies)  # Σ m v (kg m/s)
-        self.A = ti.Matrix.field(3, 3, real, shape=n_bodies)  # shape-matching moment Σ m (x − c) qᵀ
-        self.angular_momentum = ti.Vector.field(3, real, shape=n_bodies)  # about c (kg m²/s)
-        self.inertia = ti.Matrix.field(3, 3, real, shape=n_bodies)  # about c, current orientation (kg m²)
-        self.rotation = ti.Matrix.field(3, 3, real, shape=n_bodies)  # R from rest
-        self.omega = ti.Vector.field(3, real, shape=n_bodies)  # angular velocity (rad/s)
         self.rest_com = ti.Vector.field(3, real, shape=n_bodies)  # c⁰: centre of mass at rest (m)
+        self.body_mass = ti.field(real, shape=n_bodies)  # M (kg)
         self.body.from_numpy(body_index.astype(np.int32))
-        self.sdfs = []
+        q = np.zeros_like(np.asarray(x_rest, dtype=np.float64))
+        com = np.zeros((n_bodies, 3))
+        masses = np.zeros(n_bodies)
+        for b in range(n_bodies):
+            sel = body_index == b
+            com[b] = np.average(x_rest[sel], axis=0, weights=mass[sel])
+            q[sel] = x_rest[sel] - com[b]
+            masses[b] = mass[sel].astype(np_real).sum(dtype=np.float64)
+        self.rest_offset.from_numpy(q.astype(np_real))
+        self.rest_com.from_numpy(com.astype(np_real))
+        self.body_mass.from_numpy(masses.astype(np_real))
+        self.sdfs, self.normals = [], []
         if shapes is not None and n_bodies <= MAX_EXCLUDING_BODIES:
             from fluidlab_core.engine import statics
 
             self.sdfs = [statics.sdf_func(shape, real, 0.5 * dx) for shape in shapes]
             self.normals = [statics.sdf_normal(sdf, 0.01 * dx) for sdf in self.sdfs]
 
-    def set_rest(self, x_rest: np.ndarray, mass: np.ndarray, body_index: np.ndarray):
-        """Rest offsets q from each body's rest centre of mass (numpy, once at build)."""
-        q = np.zeros_like(x_rest)
-        for b in range(self.n_bodies):
-            sel = body_index == b
-            com = np.average(x_rest[sel], axis=0, weights=mass[sel])
-            q[sel] = x_rest[sel] - com
-            self.rest_com[b] = com.tolist()
-        self.rest_offset.from_numpy(q.astype(self.solver.np_real))
+
+@ti.data_oriented
+class RigidProjection:
+    """A solver's rigid-body projection: the G2P result before it (x_g, v_g, C_g), per-body sums and the
+    projection's kernels (see the module docstring). F_model is the solver's field of F after the
+    constitutive model, which the projection replaces for body particles."""
+
+    def __init__(self, model, F_model, needs_grad: bool):
+        self.model = model
+        self.rigid = model.rigid
+        self.F_model = F_model
+        real, n, nb = model.real, model.n_particles, model.rigid.n_bodies
+        g = needs_grad
+        self.x_g = ti.Vector.field(3, real, shape=n, needs_grad=g)  # G2P result before the projection (m)
+        self.v_g = ti.Vector.field(3, real, shape=n, needs_grad=g)  # (m/s)
+        self.C_g = ti.Matrix.field(3, 3, real, shape=n, needs_grad=g)  # (1/s)
+        self.com_sum = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # Σ m x (kg m)
+        self.momentum = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # Σ m v (kg m/s)
+        self.A = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # Σ m (x − c) qᵀ
+        self.A_n = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # A / |A|
+        self.L = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # angular momentum about c (kg m²/s)
+        self.U_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # SVD of A_n
+        self.sig_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)
+        self.V_b = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)
+        self.R = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # rotation from rest
+        self.inertia = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # about c (kg m²)
+        self.omega = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # angular velocity (rad/s)
+        self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
+
+    # --- per body and per particle ------------------------------------------------------------------
+    @ti.func
+    def _clear(self, b):
+        self.com_sum[b] = ti.Vector.zero(float, 3)
+        self.momentum[b] = ti.Vector.zero(float, 3)
+        self.A[b] = ti.Matrix.zero(float, 3, 3)
+        self.L[b] = ti.Vector.zero(float, 3)
+        self.inertia[b] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.func
+    def _sums(self, p):
+        """Σ m x and Σ m v."""
+        b = self.rigid.body[p]
+        if b >= 0:
+            m = self.model.mass[p]
+            self.com_sum[b] += m * self.x_g[p]
+            self.momentum[b] += m * self.v_g[p]
+
+    @ti.func
+    def _moments(self, p):
+        """A = Σ m (x − c) qᵀ and L = Σ m (x − c) × v."""
+        b = self.rigid.body[p]
+        if b >= 0:
+            m = self.model.mass[p]
+            r = self.x_g[p] - self.com_sum[b] / self.rigid.body_mass[b]
+            self.A[b] += m * r.outer_product(self.rigid.rest_offset[p])
+            self.L[b] += m * r.cross(self.v_g[p])
+
+    @ti.func
+    def _normalise(self, b):
+        """A/|A|: order-one entries for the SVD (R is unchanged by the scale)."""
+        self.A_n[b] = self.A[b] / ti.sqrt((self.A[b] * self.A[b]).sum())
+
+    @ti.func
+    def _rotation(self, b):
+        """R = U Vᵀ, the polar rotation of A."""
+        self.R[b] = self.U_b[b] @ self.V_b[b].transpose()
+
+    @ti.func
+    def _inertia(self, p):
+        """I = Σ m (|r|² 1 − r rᵀ), r = R q."""
+        b = self.rigid.body[p]
+        if b >= 0:
+            r = self.R[b] @ self.rigid.rest_offset[p]
+            self.inertia[b] += self.model.mass[p] * (r.dot(r) * ti.Matrix.identity(float, 3) - r.outer_product(r))
+
+    @ti.func
+    def _omega(self, b):
+        """ω = I⁻¹ L."""
+        self.omega[b] = self.inertia[b].inverse() @ self.L[b]
+
+    @ti.func
+    def _write(self, state: ti.template(), s_out, p):
+        """Slot s_out of particle p: on its body's rigid motion, and kept out of the other bodies."""
+        own = self.rigid.body[p]
+        xp, vp, Cp, Fp = self.x_g[p], self.v_g[p], self.C_g[p], self.F_model[p]
+        if own >= 0:
+            R = self.R[own]
+            omega = self.omega[own]
+            r = R @ self.rigid.rest_offset[p]
+            xp = self.com_sum[own] / self.rigid.body_mass[own] + r
+            vp = self.momentum[own] / self.rigid.body_mass[own] + omega.cross(r)
+            J = self.F_model[p].determinant() * (1.0 + self.model.dt * self.C_g[p].trace())
+            J = ti.min(ti.max(J, 0.5), 2.0)
+            Fp = R * ti.pow(J, 1.0 / 3.0)
+            Cp = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
+        for b in ti.static(range(len(self.rigid.sdfs))):
+            if own != b:
+                R, c = self.R[b], self.com_sum[b] / self.rigid.body_mass[b]
+                xl = R.transpose() @ (xp - c) + self.rigid.rest_com[b]
+                phi = self.rigid.sdfs[b](xl)
+                if phi < 0.0:
+                    n = R @ self.rigid.normals[b](xl)
+                    xp -= phi * n
+                    v_body = self.momentum[b] / self.rigid.body_mass[b] + self.omega[b].cross(xp - c)
+                    vn = (vp - v_body).dot(n)
+                    if vn < 0.0:
+                        vp -= vn * n
+        state.x[s_out, p] = xp
+        state.v[s_out, p] = vp
+        state.C[s_out, p] = Cp
+        state.F[s_out, p] = Fp
+
+    # --- the forward pass: one kernel -------------------------------------------------------------------
+    @ti.kernel
+    def forward(self, state: ti.template(), s_out: ti.i32):
+        """The whole projection, writing slot s_out (one launch)."""
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._clear(b)
+        for p in range(self.model.n_particles):
+            self._sums(p)
+        for p in range(self.model.n_particles):
+            self._moments(p)
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._normalise(b)
+            self.U_b[b], self.sig_b[b], self.V_b[b] = svd3.svd(self.A_n[b])
+            self._rotation(b)
+        for p in range(self.model.n_particles):
+            self._inertia(p)
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._omega(b)
+        for p in range(self.model.n_particles):
+            self._write(state, s_out, p)
+
+    # --- the same, kernel by kernel, for Taichi's autodiff (the differentiable solver) ------------------
+    @ti.kernel
+    def body_sums(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._clear(b)
+        for p in range(self.model.n_particles):
+            self._sums(p)
 
     @ti.kernel
-    def project(self):
-        """Replace each body's particle motion by its best rigid motion (see the module docstring)."""
-        s = self.solver
-        for b in range(self.n_bodies):
-            self.mass[b] = 0.0
-            self.com[b] = ti.Vector.zero(float, 3)
-            self.momentum[b] = ti.Vector.zero(float, 3)
-            self.A[b] = ti.Matrix.zero(float, 3, 3)
-            self.angular_momentum[b] = ti.Vector.zero(float, 3)
-            self.inertia[b] = ti.Matrix.zero(float, 3, 3)
-        for p in s.x:
-            b = self.body[p]
-            if b >= 0:
-                m = s.mass[p]
-                self.mass[b] += m
-                self.com[b] += m * s.x[p]
-                self.momentum[b] += m * s.v[p]
-        for b in range(self.n_bodies):
-            self.com[b] /= self.mass[b]
-        for p in s.x:
-            b = self.body[p]
-            if b >= 0:
-                m = s.mass[p]
-                r = s.x[p] - self.com[b]
-                self.A[b] += m * r.outer_product(self.rest_offset[p])
-                self.angular_momentum[b] += m * r.cross(s.v[p])
-        for b in range(self.n_bodies):
-            # scale A to order one first: its entries are ~ m q² (1e-9 kg m² per particle), where a float32
-            # SVD's absolute tolerances break down
-            A = self.A[b]
-            U, _, V = svd3.svd(A / (A.norm() + 1e-30))
-            self.rotation[b] = U @ V.transpose()
-        for p in s.x:
-            b = self.body[p]
-            if b >= 0:
-                r = self.rotation[b] @ self.rest_offset[p]
-                self.inertia[b] += s.mass[p] * (r.dot(r) * ti.Matrix.identity(float, 3) - r.outer_product(r))
-        for b in range(self.n_bodies):
-            self.omega[b] = self.inertia[b].inverse() @ self.angular_momentum[b]
-        for p in s.x:
-            b = self.body[p]
-            if b >= 0:
-                R = self.rotation[b]
-                omega = self.omega[b]
-                r = R @ self.rest_offset[p]
-                s.x[p] = self.com[b] + r
-                s.v[p] = self.momentum[b] / self.mass[b] + omega.cross(r)
-                # volume change from the grid flow (tr C = div v, before C is replaced below): a body that the
-                # flow compresses pushes back, which keeps liquid particles out of it
-                J = s.F[p].determinant() * (1.0 + s.dt * s.C[p].trace())
-                J = ti.min(ti.max(J, 0.5), 2.0)
-                s.F[p] = R * ti.pow(J, 1.0 / 3.0)
-                s.C[p] = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
+    def body_moments(self):
+        for p in range(self.model.n_particles):
+            self._moments(p)
 
     @ti.kernel
-    def exclude(self):
-        """Put particles found inside another body back on its surface (see the module docstring)."""
-        s = self.solver
-        for p in s.x:
-            own = self.body[p]
-            xp, vp = s.x[p], s.v[p]
-            for b in ti.static(range(len(self.sdfs))):
-                if own != b:
-                    R, c = self.rotation[b], self.com[b]
-                    xl = R.transpose() @ (xp - c) + self.rest_com[b]
-                    phi = self.sdfs[b](xl)
-                    if phi < 0.0:
-                        n = R @ self.normals[b](xl)
-                        xp -= phi * n
-                        v_body = self.momentum[b] / self.mass[b] + self.omega[b].cross(xp - c)
-                        vn = (vp - v_body).dot(n)
-                        if vn < 0.0:
-                            vp -= vn * n
-            s.x[p] = xp
-            s.v[p] = vp
+    def body_normalise(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._normalise(b)
+
+    @ti.kernel
+    def body_svd_kernel(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self.U_b[b], self.sig_b[b], self.V_b[b] = svd3.svd(self.A_n[b])
+
+    @ti.kernel
+    def body_svd_grad_kernel(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self.A_n.grad[b] += self.backward_svd(self.U_b.grad[b], self.sig_b.grad[b], self.V_b.grad[b],
+                                                  self.U_b[b], self.sig_b[b], self.V_b[b])
+
+    @ti.ad.grad_replaced
+    def body_svd(self):
+        self.body_svd_kernel()
+
+    @ti.ad.grad_for(body_svd)
+    def body_svd_grad(self):
+        self.body_svd_grad_kernel()
+
+    @ti.kernel
+    def body_rotation(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._rotation(b)
+
+    @ti.kernel
+    def body_inertia(self):
+        for p in range(self.model.n_particles):
+            self._inertia(p)
+
+    @ti.kernel
+    def body_omega(self):
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            self._omega(b)
+
+    @ti.kernel
+    def write(self, state: ti.template(), s_out: ti.i32):
+        for p in range(self.model.n_particles):
+            self._write(state, s_out, p)
+
+    def kernels(self):
+        """The projection's kernels before the write, in order."""
+        return [self.body_sums, self.body_moments, self.body_normalise, self.body_svd, self.body_rotation,
+                self.body_inertia, self.body_omega]
+
+    def backward(self, state, s_out: int):
+        """Gradients through the projection of the substep writing slot s_out (its intermediates recomputed
+        by `kernels()` beforehand), in reverse order."""
+        self.write.grad(state, s_out)
+        for kernel in reversed(self.kernels()):
+            if kernel == self.body_svd:
+                self.body_svd_grad()
+            else:
+                kernel.grad()
+
+    @ti.kernel
+    def clear_grads(self):
+        """Zero the gradients that the projection's backward accumulates (before each substep's backward)."""
+        for p in range(self.model.n_particles):
+            self.F_model.grad[p] = ti.Matrix.zero(float, 3, 3)
+            self.x_g.grad[p] = ti.Vector.zero(float, 3)
+            self.v_g.grad[p] = ti.Vector.zero(float, 3)
+            self.C_g.grad[p] = ti.Matrix.zero(float, 3, 3)
+        ti.loop_config(serialize=True)
+        for b in range(self.rigid.n_bodies):
+            for f in ti.static((self.com_sum, self.momentum, self.L, self.omega)):
+                f.grad[b] = ti.Vector.zero(float, 3)
+            for f in ti.static((self.A, self.A_n, self.U_b, self.sig_b, self.V_b, self.R, self.inertia)):
+                f.grad[b] = ti.Matrix.zero(float, 3, 3)

@@ -122,7 +122,7 @@ def sdf_func(shape, real, mesh_spacing: float):
         hollow = shape._hollow()
         return _difference(sdf_func(outer, real, mesh_spacing), sdf_func(hollow, real, mesh_spacing))
     if isinstance(shape, S.Mesh):
-        from fluidlab_core.engine.mesh_sdf import mesh_sdf_grid
+        from fluidlab_core.shapes.mesh_sdf import mesh_sdf_grid
 
         return MeshSDF(mesh_sdf_grid(shape.mesh(), mesh_spacing), real).func()
     raise TypeError(f"no static collider for shape type {type(shape).__name__}")

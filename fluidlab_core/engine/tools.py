@@ -2,9 +2,11 @@
 6-D velocity action, coupled to the particles through the grid with the soft contact model of FluidLab.
 
 Kinematics (world frame, SI): pose (p, R); an action (v, ω) in m/s and rad/s, both in the world frame, is
-held over the step's substeps: p ← p + v Δt, R ← exp([ω]× Δt) R. A point x of the tool moves at
-v + ω × (x − p). Tool poses are bounded by a workspace box on p: an action that would leave it is scaled
-back to stop at the boundary, and the clipping is reported in the step's info.
+held over the step's substeps: p ← p + v Δt, R ← exp([ω]× Δt) R (`advance_pose`, on the device, in both
+solvers). A point x of the tool moves at v + ω × (x − p). Tool poses are bounded by a workspace box on p:
+each linear component of an action that would carry the origin past the box over the step becomes
+(bound − p)/dt, so that the tool stops at the boundary (`plan`, on the host in float64, for a whole action
+sequence before it runs: the origins depend on the actions alone), and the clipping is reported.
 
 Contact at a grid node x with velocity u (after gravity and statics), φ = sdf_tool(Rᵀ(x − p)), n = ∇φ:
     u_rel = u − u_tool,  u_n = u_rel·n
@@ -27,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from fluidlab_core import shapes as S
 from fluidlab_core.engine import statics
+from fluidlab_core.engine.svd import rotation_from_rotvec
 
 
 @dataclass
@@ -45,19 +48,15 @@ class ToolSpec:
     color: tuple[float, float, float] = (0.35, 0.35, 0.4)
 
 
-@ti.data_oriented
 class Tool:
-    """The Taichi side of one tool: its current pose and velocity, and the contact hook for the grid."""
+    """The Taichi side of one tool: its SDF in its own frame and the contact law at a grid node (the pose is
+    part of the State, state.py)."""
 
     def __init__(self, spec: ToolSpec, real, dx: float):
         self.spec = spec
-        self.position = ti.Vector.field(3, real, shape=())  # tool origin p (m)
-        self.rotation = ti.Matrix.field(3, 3, real, shape=())  # R, tool frame to world
-        self.linear_velocity = ti.Vector.field(3, real, shape=())  # v (m/s)
-        self.angular_velocity = ti.Vector.field(3, real, shape=())  # ω (rad/s)
         self.sdf_local = statics.sdf_func(spec.shape, real, 0.5 * dx)
         self.normal_local = statics.sdf_normal(self.sdf_local, 0.01 * dx)
-        self.contact = self._make_contact()
+        self.contact_at = self._make_contact()
 
     def _make_contact(self):
         sdf, normal = self.sdf_local, self.normal_local
@@ -89,79 +88,52 @@ class Tool:
                     u += ti.min(ti.exp(-softness * phi), 1.0) * (u_c - u)
             return u
 
-        self.contact_at = contact_at
-        position, rotation = self.position, self.rotation
-        lin, ang = self.linear_velocity, self.angular_velocity
-
-        @ti.func
-        def contact(x, u):
-            return contact_at(x, u, position[None], rotation[None], lin[None], ang[None])
-
-        return contact
+        return contact_at
 
 
-class ToolState:
-    """Tool poses on the host (numpy), advanced substep by substep; the kernels read them from `Tool`."""
+@ti.func
+def advance_pose(p, R, lin, ang, dt):
+    """The tool's pose after dt holding the twist (lin, ang): p + dt lin, exp([ang]× dt) R."""
+    return p + dt * lin, rotation_from_rotvec(ang * dt) @ R
 
-    def __init__(self, specs: list[ToolSpec]):
-        self.specs = specs
-        self.position = np.array([s.position for s in specs], dtype=np.float64).reshape(-1, 3)
-        self.rotation = np.array([Rotation.from_quat(s.quaternion).as_matrix() for s in specs]).reshape(-1, 3, 3)
 
-    def parse_action(self, action) -> np.ndarray:
-        """(n_tools, 6) velocities from None, a (6,) array (one tool), an (n, 6) array or a {name: (6,)} dict;
-        dimensions outside each tool's action mask are zeroed."""
-        n = len(self.specs)
-        out = np.zeros((n, 6))
-        if action is None:
-            return out
-        if isinstance(action, dict):
-            names = [s.name for s in self.specs]
-            for key, value in action.items():
-                if key not in names:
-                    raise KeyError(f"no tool named {key!r}; tools: {', '.join(names)}")
-                out[names.index(key)] = self._vector(value, key)
-        else:
-            arr = np.asarray(action, dtype=np.float64)
-            if arr.shape == (6,) and n == 1:
-                arr = arr[None]
-            if arr.shape != (n, 6):
-                raise ValueError(f"action must have shape (6,) for one tool or ({n}, 6), got {arr.shape}")
-            out[:] = arr
-        if not np.all(np.isfinite(out)):
-            raise ValueError("action contains NaN or infinity")
-        return out * np.array([s.action_mask for s in self.specs], dtype=np.float64)
+def parse_action(specs, action) -> np.ndarray:
+    """(n_tools, 6) twists from None, a (6,) array (one tool), an (n, 6) array or a {name: (6,)} dict;
+    dimensions outside each tool's action mask are zeroed."""
+    n = len(specs)
+    out = np.zeros((n, 6))
+    if action is None:
+        return out
+    if isinstance(action, dict):
+        names = [s.name for s in specs]
+        for key, value in action.items():
+            if key not in names:
+                raise KeyError(f"no tool named {key!r}; tools: {', '.join(names)}")
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape != (6,):
+                raise ValueError(f"action for tool {key!r} must be 6 numbers (vx, vy, vz, wx, wy, wz), got "
+                                 f"{arr.shape}")
+            out[names.index(key)] = arr
+    else:
+        arr = np.asarray(action, dtype=np.float64)
+        if arr.shape == (6,) and n == 1:
+            arr = arr[None]
+        if arr.shape != (n, 6):
+            raise ValueError(f"action must have shape (6,) for one tool or ({n}, 6), got {arr.shape}")
+        out[:] = arr
+    if not np.all(np.isfinite(out)):
+        raise ValueError("action contains NaN or infinity")
+    return out * action_masks(specs)
 
-    @staticmethod
-    def _vector(value, name):
-        arr = np.asarray(value, dtype=np.float64)
-        if arr.shape != (6,):
-            raise ValueError(f"action for tool {name!r} must be 6 numbers (vx, vy, vz, wx, wy, wz), got {arr.shape}")
-        return arr
 
-    def clip(self, velocities: np.ndarray, dt: float) -> tuple[np.ndarray, list[bool]]:
-        """Scale each tool's linear velocity back so that its position stays in its workspace over dt."""
-        out, dims = clip_twists(self.specs, self.position, velocities, dt)
-        return out, [bool(d.any()) for d in dims]
+def action_masks(specs) -> np.ndarray:
+    """(n_tools, 6) of 0/1: which twist components each tool's action drives."""
+    return np.array([s.action_mask for s in specs], dtype=np.float64).reshape(len(specs), 6)
 
-    @staticmethod
-    def turns(velocities: np.ndarray, dt: float) -> np.ndarray:
-        """(n_tools, 3, 3) rotations exp([ω]× dt) of the angular velocities over dt."""
-        return Rotation.from_rotvec(velocities[:, 3:] * dt).as_matrix().reshape(-1, 3, 3)
 
-    def advance(self, velocities: np.ndarray, dt: float, turns: np.ndarray | None = None):
-        """p ← p + v dt, R ← exp([ω]× dt) R; `turns` (from `turns(velocities, dt)`) saves recomputing the
-        rotations when several substeps hold the same twist."""
-        if not len(self.specs):
-            return
-        if turns is None:
-            turns = self.turns(velocities, dt)
-        self.position += velocities[:, :3] * dt
-        self.rotation = turns @ self.rotation
-
-    def pose(self, i: int) -> np.ndarray:
-        """(x, y, z, qx, qy, qz, qw) of tool i."""
-        return np.concatenate([self.position[i], Rotation.from_matrix(self.rotation[i]).as_quat()])
+def pose_of(position, rotation) -> np.ndarray:
+    """(x, y, z, qx, qy, qz, qw) of a tool frame from its origin and rotation matrix."""
+    return np.concatenate([position, Rotation.from_matrix(rotation).as_quat()])
 
 
 def clip_twists(specs, position: np.ndarray, twist: np.ndarray, dt: float):
@@ -178,3 +150,21 @@ def clip_twists(specs, position: np.ndarray, twist: np.ndarray, dt: float):
             dims[i] = np.abs(inside - end) > 1e-12
             out[i, :3] = np.where(dims[i], (inside - position[i]) / dt, out[i, :3])
     return out, dims
+
+
+def plan(specs, position, twists: np.ndarray, dt: float, substeps: int):
+    """Workspace clipping of a sequence of steps: twists (N, n_tools, 6) from tool origins `position`
+    (n_tools, 3). The origins depend on the twists alone, so they are predicted here in float64, substep by
+    substep as the solvers advance them (p ← p + v Δt). Returns the clipped twists (N, n_tools, 6) and which
+    linear components were clipped (N, n_tools, 3)."""
+    applied = np.zeros_like(twists, dtype=np.float64)
+    clipped = np.zeros((len(twists), len(specs), 3), dtype=bool)
+    if not specs:
+        return applied, clipped
+    p = np.array(position, dtype=np.float64).reshape(len(specs), 3)
+    sub_dt = dt / substeps
+    for g in range(len(twists)):
+        applied[g], clipped[g] = clip_twists(specs, p, twists[g], dt)
+        for _ in range(substeps):
+            p += applied[g, :, :3] * sub_dt
+    return applied, clipped

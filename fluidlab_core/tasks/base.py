@@ -145,12 +145,12 @@ class Task:
     def reset(self, sim, tool_position=None):
         """Put `sim` in the task's start state, optionally with the tool origin moved to `tool_position` (m,
         clipped to the workspace)."""
-        state = dict(self._initial_state[id(sim)])
+        state = self._initial_state[id(sim)]
         if tool_position is not None:
             lo, hi = self.workspace()
-            pos = np.array(state["tool_position"], dtype=np.float64)
+            pos = np.array(state.tool_position, dtype=np.float64)
             pos[0] = np.clip(np.asarray(tool_position, dtype=np.float64), lo, hi)
-            state["tool_position"] = pos
+            state = state.replace(tool_position=pos)
         sim.set_state(state)
 
     def twists(self, actions) -> np.ndarray:
@@ -204,30 +204,16 @@ class Task:
         sim = sim or self.simulator()
         twists = self.twists(actions)
         self.reset(sim, tool_position)
-        step_losses = np.zeros(len(twists))
-        per_step = np.zeros(len(twists))
-        clipped = 0
-        term = self.step_term() if rewards else None
-        task_loss = self.loss(len(twists))
-        for k, tw in enumerate(twists, start=1):
-            info = sim.step(tw)
-            clipped += any(info["clipped"].values())
-            if task_loss.active(k, len(twists)) or term is not None:
-                state = self.step_state(sim)
-                step_losses[k - 1] = task_loss(state, len(twists))[0]
-                if term is not None:
-                    per_step[k - 1] = term(state, len(twists))[0]
-            if progress:
-                progress("forward", k, len(twists))
-        out = {"loss": float(step_losses.sum()), "step_losses": step_losses, "clipped_steps": int(clipped)}
+        terms = {"reward_term": self.step_term()} if rewards else {}
+        res = sim.rollout(twists, self.loss(len(twists)), progress=progress, terms=terms)
+        out = {"loss": res.loss, "step_losses": res.step_losses, "clipped_steps": int(res.clipped.any(axis=1).sum())}
         if rewards:
-            r = self.reward_c1 - self.reward_c2 * per_step
+            r = self.reward_c1 - self.reward_c2 * res.terms["reward_term"]
             out.update(rewards=r, **{"return": float(r.sum())})
         return out
 
     def step_state(self, sim) -> losses.StepState:
-        return losses.StepState(sim.step_count, sim.time, sim.positions(), sim.velocities(),
-                                sim.tools.position.copy(), sim.tools.rotation.copy())
+        return sim.step_state()
 
     # --- observations -----------------------------------------------------------------------------------
     def observation_size(self) -> int:
@@ -259,7 +245,7 @@ class Task:
     # --- trajectories -----------------------------------------------------------------------------------
     def trajectory(self, actions, tool_position=None, method="", seed=None, loss_history=(), metadata=None
                    ) -> Trajectory:
-        """A Trajectory document (DESIGN.md §4) of these actions from the start state."""
+        """A Trajectory document (fluidlab_core/trajectory.py) of these actions from the start state."""
         pose = self.initial_tool_pose().copy()
         if tool_position is not None:
             lo, hi = self.workspace()

@@ -256,7 +256,7 @@ class Mesh(Shape):
 
     def mesh(self):
         if self._mesh is None:
-            from fluidlab_core.engine.mesh_sdf import load_mesh
+            from fluidlab_core.shapes.mesh_sdf import load_mesh
 
             object.__setattr__(self, "_mesh", load_mesh(self.path, pose=self.pose, scale=self.scale))
         return self._mesh
@@ -274,6 +274,6 @@ class Mesh(Shape):
         return float(self.mesh().volume)
 
     def sample(self, spacing, rng=None, jitter=0.0):
-        from fluidlab_core.engine.mesh_sdf import sample_mesh_volume
+        from fluidlab_core.shapes.mesh_sdf import sample_mesh_volume
 
         return sample_mesh_volume(self.mesh(), spacing, rng=rng, jitter=jitter)

@@ -4,7 +4,7 @@ Scene (the issue's benchmark): a cube of water and an elastic cube in an open ta
 (the paper's unit domain), 8 particles per cell, substep 2e-4 s; the water is sized for the requested
 particle count. Each size is warmed up (compilation) and then timed over a few steps. When `genesis-world`
 is installed, the Genesis MPM liquid scene with the same grid, particle count and substep runs right after
-ours (fluidlab_core/genesis_compare.py) and the ratio is printed.
+ours (fluidlab_core/apps/genesis_compare.py) and the ratio is printed.
 
 Figures are ratios against runs in the same process, so they compare like with like on one machine.
 """
@@ -73,7 +73,7 @@ def time_genesis(n_particles: int, steps: int):
 
     if importlib.util.find_spec("genesis") is None:
         return None
-    from fluidlab_core import genesis_compare
+    from fluidlab_core.apps import genesis_compare
 
     return genesis_compare.time_liquid(n_particles, steps, GRID_RES, DOMAIN, DT, SUBSTEPS)
 

@@ -1,7 +1,7 @@
 """The benchmark's liquid scene in Genesis (`genesis-world`), timed like ours, for the ours/Genesis ratio.
 
 What is compared: forward MLS-MPM throughput in particle-substeps per second on the CPU backend, float32,
-for the same grid, particle density and substep as `fluidlab_core.bench`:
+for the same grid, particle density and substep as `fluidlab_core.apps.throughput`:
 
 * domain: the cube [0, domain]^3 (0.4 m); `MPMOptions(lower_bound=(0,0,0), upper_bound=(domain,)*3,
   grid_density=grid_res / domain)`, i.e. 64 cells across (Genesis allocates 65 nodes per axis and keeps
@@ -22,7 +22,7 @@ which Genesis's liquid-only scene does not; Genesis's walls are the grid boundar
 therefore a like-for-like measure of the P2G / grid / G2P pipeline for liquid, not of identical scenes.
 
 Genesis ships its own Taichi fork (`quadrants`), so it can share a process with `taichi`; `time_liquid` still
-runs Genesis in a child process (`python -m fluidlab_core.genesis_compare ...`, which prints one JSON line),
+runs Genesis in a child process (`python -m fluidlab_core.apps.genesis_compare ...`, which prints one JSON line),
 so that its threads, memory and one-shot `gs.init` do not disturb our timings and peak-RSS figures. Pass
 `in_process=True` to run it in the caller's process instead. Nothing here imports genesis at module import.
 Written against genesis-world 1.4.5 (quadrants 1.3.3) with torch 2.13.0+cpu; `gs.init(backend=gs.cpu,
@@ -115,7 +115,7 @@ def time_liquid(n_particles: int, steps: int, grid_res: int, domain: float, dt: 
     root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    cmd = [sys.executable, "-m", "fluidlab_core.genesis_compare", "--particles", str(n_particles),
+    cmd = [sys.executable, "-m", "fluidlab_core.apps.genesis_compare", "--particles", str(n_particles),
            "--steps", str(steps), "--grid-res", str(grid_res), "--domain", repr(domain), "--dt", repr(dt),
            "--substeps", str(substeps)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=root, env=env, timeout=timeout)

@@ -1,0 +1,2 @@
+"""Applications built on the library, reached through the `fluidlab` command: the demo scene (`demo`), the
+forward throughput benchmark (`throughput`) and its Genesis comparison (`genesis_compare`)."""

@@ -1,0 +1,297 @@
+"""The differentiable solver: the substep of solver.py on time-indexed state, and its backward.
+
+State of substep s lives in slot s of a StateBuffer of `n_slots` (one checkpoint segment, state.py); a substep
+reads slot s and writes slot s + 1 with the same forward kernel as the fast solver (`Solver.forward_kernel`).
+Its gradient is Taichi's reverse-mode autodiff where that is cheap, and by hand where it is not: the SVD
+(svd.py, carried on to C and F by hand), the P2G scatter and the G2P gather (transfer.py). The backward of
+substep s (`substep_grad`) runs these kernels, built from the same functions as the forward, in reverse order:
+
+    U, Σ, V = svd((I + Δt C) F)            only for models that need it; backward by hand
+    stress: (F_new, τ) = model(...)         autodiff, one kernel per model (all models in one reverse kernel
+                                           took 11 minutes to compile)
+    P2G                                    backward by hand (transfer.p2g_backward)
+    grid update and the tools' advance     autodiff (grid_update)
+    G2P gather and advection               backward by hand (transfer.gather_backward)
+    projection out of statics and walls    autodiff (g2p_project)
+    rigid projection                       autodiff of rigid.py's kernels, the polar SVD by hand
+
+What the backward reads, the forward keeps per substep (`store_*`): the grid before and after its update
+(7 reals a node), the stress τ and the gather's result (15 reals a particle, 24 with rigid bodies). The backward
+re-runs only the SVD (and with rigid bodies the stress and the projection's body sums). Intermediate
+gradients are assigned by the first kernel to write them, or zeroed by the last to read them, so no launch
+only clears. Gradients accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py)
+seeds them from the loss and hands them across segment boundaries.
+
+Scatters (P2G forward, the gather's backward) go into one grid copy per CPU thread, summed afterwards: no
+float atomics, and sums in a fixed order, so that gradients are the same run to run. On a GPU (no copies)
+they are atomic.
+"""
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import grid, transfer
+from fluidlab_core.engine import svd as svd3
+from fluidlab_core.engine.solver import Solver
+from fluidlab_core.engine.state import StateBuffer
+
+
+def slot_bytes(model) -> int:
+    """Device memory of one slot of the differentiable solver, with the stores of one substep: x, v, C, F and
+    their gradients per particle and slot, the tools' slot fields, and what the forward keeps for the backward
+    (the grid before and after its update, 7 reals a node; the stress and the gather's result, 15 reals a
+    particle, 24 with rigid bodies)."""
+    real_bytes = np.dtype(model.np_real).itemsize
+    n = model.n_particles
+    out = 2 * real_bytes * (24 * n + 24 * max(model.n_tools, 1))
+    out += real_bytes * (7 * int(np.prod(model.grid_shape)) + (24 if model.has_rigid else 15) * n)
+    return out
+
+
+def buffer_steps(model, grad_memory: float, grad_max_steps: int) -> int:
+    """Whole steps the gradient buffer holds within `grad_memory` bytes, at most `grad_max_steps`; refuses a
+    memory that holds none."""
+    per_slot = slot_bytes(model)
+    steps = int(min(grad_max_steps, (grad_memory // per_slot - 1) // model.substeps))
+    if steps < 1:
+        raise ValueError(f"grad_memory={grad_memory:.3g} bytes holds no whole step of {model.substeps} substeps "
+                         f"({per_slot * (model.substeps + 1):.3g} bytes for {model.n_particles} particles); raise it")
+    return steps
+
+
+@ti.data_oriented
+class DiffSolver(Solver):
+    """The time-indexed, differentiable solver (see the module docstring); its state is `self.state`."""
+
+    def __init__(self, model, n_slots: int, scatter_copies: int = 0):
+        super().__init__(model, scatter_copies, needs_grad=True)
+        real, n = model.real, model.n_particles
+        self.n_slots = int(n_slots)
+        self.state = StateBuffer(n, model.n_tools, self.n_slots, real, needs_grad=True)
+        # per-substep intermediates, recomputed by the backward pass
+        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of (I + Δt C) F: left rotation
+        self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
+        self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
+        if self.rigid is None:
+            self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # F after the model
+        self.tau = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # Kirchhoff stress (Pa)
+        # G2P's gather before the projection out of statics and walls (the two have separate backwards): the
+        # projection reads the stored gather (store_x_pre, ...) plus these, which stay zero; their .grad is the
+        # gradient of the gathered x + Δt v (m), v (m/s) and C (1/s, with rigid bodies), for the gather's backward
+        self.x_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)
+        self.v_pre = ti.Vector.field(3, real, shape=n, needs_grad=True)
+        self.C_pre = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)
+        # what the backward of substep s reads, kept by the forward: the grid before and after its update, the
+        # stress and the gather's result
+        n_sub = self.n_slots - 1
+        shape = (n_sub,) + tuple(model.grid_shape)
+        self.store_m = ti.field(real, shape=shape)
+        self.store_mv = ti.Vector.field(3, real, shape=shape)
+        self.store_v = ti.Vector.field(3, real, shape=shape)
+        self.store_x_pre = ti.Vector.field(3, real, shape=(n_sub, n))
+        self.store_v_pre = ti.Vector.field(3, real, shape=(n_sub, n))
+        self.store_tau = ti.Matrix.field(3, 3, real, shape=(n_sub, n))  # the stress, for P2G's backward
+        if self.rigid is not None:  # otherwise C_pre is C of slot s + 1
+            self.store_C_pre = ti.Matrix.field(3, 3, real, shape=(n_sub, n))
+        self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
+        # where the gather's backward scatters ∂L/∂v_i: the per-thread copies (summed afterwards) or the grid
+        self._gather_target = self.copies_mv if self.private else self.grid_v.grad
+
+    @property
+    def substeps(self) -> int:
+        return self.model.substeps
+
+    @property
+    def capacity_steps(self) -> int:
+        """Whole steps the buffer holds (one checkpoint segment at most)."""
+        return (self.n_slots - 1) // self.model.substeps
+
+    def clear_grads(self):
+        """Zero the gradients of every slot, and of the intermediates that the backward kernels zero after use
+        (x_pre, v_pre, C_pre, U, Σ, V: in case an earlier backward stopped half-way)."""
+        self.state.clear_grads()
+        for f in (self.x_pre, self.v_pre, self.C_pre, self.U, self.sig, self.V):
+            f.grad.fill(0.0)
+
+    # --- one substep, forward and backward ----------------------------------------------------------
+    @ti.ad.grad_replaced
+    def substep(self, s: int):
+        """Slot s → slot s + 1, keeping what its backward reads (`store_*`)."""
+        self._forward(s, True)
+
+    def substep_no_store(self, s: int):
+        """Slot s → slot s + 1 without the stores: for a forward pass whose substeps are run again before their
+        backward (checkpointing's first pass over all but the last segment), or that has none."""
+        self._forward(s, True, keep=False)
+
+    def _forward(self, s: int, whole: bool, keep: bool = True):
+        """The substep's forward. Without `whole` (before its backward), only what the backward reads and the
+        forward did not keep: the SVD (the stress's backward reads it), with rigid bodies the stress's F_new
+        (the rigid projection reads it) and the projection's body sums (not the slot s + 1 writes)."""
+        if whole:
+            self.forward_kernel(self.state, s, s + 1, keep, self._no_twist, False)
+            if self.rigid is not None:
+                self.rigid.forward(self.state, s + 1)
+            return
+        if self.model.svd_models:
+            self.svd(s)  # SVD of F_trial
+        if self.rigid is not None:
+            self.rigid.clear_grads()
+            for k in range(len(self.model.constitutive)):
+                self.stress(s, k)  # constitutive models
+            self.g2p_project(s)
+            for kernel in self.rigid.kernels():  # rigid projection's body sums
+                kernel()
+
+    @ti.ad.grad_for(substep)
+    def substep_grad(self, s: int):
+        """Add the gradients of slot s from those of slot s + 1: restore or re-run the substep's intermediates,
+        then the gradients of its kernels in reverse order."""
+        self._forward(s, False)
+        if self.rigid is not None:
+            self.rigid.backward(self.state, s + 1)
+        self.g2p_grad(s)
+        self.grid_update.grad(s)
+        self.p2g_grad_kernel(s)
+        for k in reversed(range(len(self.model.constitutive))):
+            self.stress.grad(s, k)
+        if self.model.svd_models:
+            self.svd_grad(s)
+
+    # --- SVD and stress -------------------------------------------------------------------------------
+    @ti.kernel
+    def svd_kernel(self, s: ti.i32):
+        """U Σ Vᵀ = F_trial for particles whose model needs it (re-run before each substep's backward, so it also
+        zeroes the gradients of U, Σ, V that the stress's backward accumulates)."""
+        for p in range(self.n_particles):
+            for k in ti.static(self.model.svd_models):
+                if self.model.model[p] == k:
+                    self.U[p], self.sig[p], self.V[p] = svd3.svd(
+                        transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]))
+                    self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
+                    self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
+                    self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.kernel
+    def svd_grad_kernel(self, s: ti.i32):
+        """Gradient of F_trial from those of U, Σ, V (svd.py), on to C and F: with G = ∂L/∂F_trial,
+        ∂L/∂C += Δt G Fᵀ and ∂L/∂F += (I + Δt C)ᵀ G."""
+        for p in range(self.n_particles):
+            for k in ti.static(self.model.svd_models):
+                if self.model.model[p] == k:
+                    G = self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
+                                          self.V[p])
+                    # one thread per particle: plain read-modify-writes, not atomic adds
+                    self.state.C.grad[s, p] = self.state.C.grad[s, p] + self.model.dt * G @ \
+                        self.state.F[s, p].transpose()
+                    self.state.F.grad[s, p] = (self.state.F.grad[s, p] + (
+                        ti.Matrix.identity(float, 3) + self.model.dt * self.state.C[s, p]).transpose() @ G)
+
+    @ti.ad.grad_replaced
+    def svd(self, s: int):
+        self.svd_kernel(s)
+
+    @ti.ad.grad_for(svd)
+    def svd_grad(self, s: int):
+        self.svd_grad_kernel(s)
+
+    @ti.kernel
+    def stress(self, s: ti.i32, k: ti.template()):
+        """(F_new, τ) of constitutive model k for its particles, from the SVD above: one kernel per model, so that
+        each gradient kernel stays small."""
+        for p in range(self.n_particles):
+            if self.model.model[p] == k:
+                prm = self.model.params[k][self.model.material[p]]
+                self.F_model[p], self.tau[p] = self.model.constitutive[k].func(
+                    transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]), self.state.C[s, p],
+                    prm, self.U[p], self.sig[p], self.V[p])
+
+    # --- P2G, grid update, G2P: backward ------------------------------------------------------------
+    @ti.kernel
+    def p2g_grad_kernel(self, s: ti.i32):
+        """Backward of P2G (transfer.p2g_backward) with the stored stress; F of slot s + 1 is F_model (without
+        rigid bodies)."""
+        for p in range(self.n_particles):
+            gx, gv, gC, gtau = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad, self.state.x[s, p],
+                                                     self.state.v[s, p], self.state.C[s, p], self.store_tau[s, p], p)
+            # one thread per particle: plain read-modify-write (Taichi makes `+=` on a field an atomic add)
+            self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx
+            self.state.v.grad[s, p] = self.state.v.grad[s, p] + gv
+            self.state.C.grad[s, p] = self.state.C.grad[s, p] + gC
+            self.tau.grad[p] = gtau  # the first to write these in a substep's backward
+            if ti.static(not self.has_rigid):
+                self.F_model.grad[p] = self.state.F.grad[s + 1, p]
+
+    @ti.kernel
+    def grid_update(self, s: ti.i32):
+        """Node velocities at the slot-s tool poses, then the tools' advance to slot s + 1 (for autodiff)."""
+        for I in ti.grouped(self.grid_m):
+            self.grid_v[I] = grid.node_velocity(self.model, I, self.grid_m[I], self.grid_mv[I], self.state, s)
+        ti.loop_config(serialize=True)
+        for k in range(self.model.n_tools):
+            self._advance_tool(self.state, s, s + 1, k)
+
+    @ti.kernel
+    def g2p_project(self, s: ti.i32):
+        """The projection alone, of the stored gather (plus x_pre, v_pre, C_pre, zero, whose gradients Taichi's
+        reverse of this kernel fills: g2p_grad). Without rigid bodies C of slot s + 1 is the gathered C, which
+        the forward wrote, and its gradient goes straight to the gather's backward."""
+        for p in range(self.n_particles):
+            xp, vp = grid.project(self.model, self.store_x_pre[s, p] + self.x_pre[p],
+                                  self.store_v_pre[s, p] + self.v_pre[p])
+            if ti.static(self.has_rigid):
+                self.rigid.x_g[p], self.rigid.v_g[p] = xp, vp
+                self.rigid.C_g[p] = self.store_C_pre[s, p] + self.C_pre[p]
+            else:
+                self.state.x[s + 1, p], self.state.v[s + 1, p] = xp, vp
+
+    @ti.kernel
+    def g2p_gather_grad(self, s: ti.i32):
+        """Backward of the gather and advection (transfer.gather_backward) with the stored node velocities. The
+        kernel's grid loop also puts the substep's grid back for grid_update's backward (grid_m, grid_mv from
+        the stores, their gradients zero): no separate restore launch."""
+        if ti.static(self.private):
+            ti.loop_config(block_dim=1)
+            for c in range(self.copies):
+                for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                    self._gather_grad_particle(c, s, p)
+            for I in ti.grouped(self.grid_m):
+                g = ti.Vector.zero(float, 3)
+                for c in range(self.copies):
+                    g += self.copies_mv[c, I[0], I[1], I[2]]
+                    self.copies_mv[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+                self._restore_node(s, I, g)
+        else:
+            for I in ti.grouped(self.grid_m):
+                self._restore_node(s, I, ti.Vector.zero(float, 3))
+            for p in range(self.n_particles):
+                self._gather_grad_particle(0, s, p)
+
+    @ti.func
+    def _restore_node(self, s, I, g_v):
+        """Node I as substep s's grid update found it, with ∂L/∂v_i = g_v and zero mass and momentum gradients."""
+        self.grid_m[I] = self.store_m[s, I[0], I[1], I[2]]
+        self.grid_mv[I] = self.store_mv[s, I[0], I[1], I[2]]
+        self.grid_v.grad[I] = g_v
+        self.grid_m.grad[I] = 0.0
+        self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
+
+    @ti.func
+    def _gather_grad_particle(self, c, s, p):
+        """Particle p's part of g2p_gather_grad, its grid gradient into copy c (or atomically into the grid)."""
+        gx = self.x_pre.grad[p]
+        gv = self.v_pre.grad[p]
+        gC = self.state.C.grad[s + 1, p]
+        if ti.static(self.has_rigid):
+            gC = self.C_pre.grad[p]
+            self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
+        self.x_pre.grad[p] = ti.Vector.zero(float, 3)  # read once: zero for the next substep's projection
+        self.v_pre.grad[p] = ti.Vector.zero(float, 3)
+        gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private, self.state.x[s, p],
+                                      self.store_v_pre[s, p], gx, gv, gC)
+        # one thread per particle: a plain read-modify-write (`+=` on a field is an atomic add)
+        self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx + gf
+
+    def g2p_grad(self, s: int):
+        self.g2p_project.grad(s)
+        self.g2p_gather_grad(s)

@@ -1,0 +1,96 @@
+"""The grid side of an MLS-MPM substep: the B-spline stencil, and the grid update with its boundary conditions.
+
+Stencil (Hu et al. 2018, "A moving least squares material point method", eq. 3): a particle at x has grid
+coordinates X = (x − origin)/Δx, base node ⌊X − ½⌋ and offset f = X − base ∈ [½, 3/2)³; its quadratic B-spline
+weights along each axis are
+    w₀ = ½ (3/2 − f)²,  w₁ = ¾ − (f − 1)²,  w₂ = ½ (f − ½)²
+and w_ip = w₀(f_x) w₁(f_y) w₂(f_z) over the 3×3×3 nodes base + (a, b, c).
+
+Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
+    v_i = (mv)_i / m_i + Δt g                      (nodes under the model's mass floor stay at rest)
+    statics (statics.py), then each tool's contact law at the pose it holds during the substep (tools.py),
+    then the domain walls: a node within half a cell of a wall loses its velocity into it (slip, optional
+    Coulomb friction μ_w: the tangential speed shrinks by μ_w × the normal speed removed).
+After G2P, particles inside a static or past a wall are put back on its surface and lose their velocity into
+it (`project`).
+
+Every function takes the Model (model.py) as a template argument; both solvers call them.
+"""
+
+import taichi as ti
+
+from fluidlab_core.engine import statics
+
+
+@ti.func
+def stencil(model: ti.template(), xp):
+    """Base node, offset f and quadratic B-spline weights [w₀, w₁, w₂] (per axis) of a particle at xp."""
+    Xp = (xp - ti.Vector(model.origin)) * model.inv_dx
+    base = ti.cast(Xp - 0.5, ti.i32)
+    # never index off the grid, even for a NaN position (the NaN check then reports it)
+    for d in ti.static(range(3)):
+        base[d] = ti.min(ti.max(base[d], 0), model.grid_shape[d] - 3)
+    fx = Xp - base
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    return base, fx, w
+
+
+@ti.func
+def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
+    """Velocity of node I from its mass and momentum: gravity, statics, tools at their slot-s pose, walls."""
+    vn = ti.Vector.zero(float, 3)
+    if m > model.mass_floor:
+        vn = mv / m + model.dt * ti.Vector(model.gravity)
+        xn = ti.Vector(model.origin) + I * model.dx
+        for k in ti.static(range(len(model.colliders))):
+            vn = model.colliders[k].grid(xn, vn)
+        for k in ti.static(range(model.n_tools)):
+            vn = model.tools[k].contact_at(xn, vn, _real(model, state.tool_p[k, s]), _real(model, state.tool_R[k, s]),
+                                           _real(model, state.tool_v[k, s]), _real(model, state.tool_w[k, s]))
+        vn = walls(model, xn, vn)
+    return vn
+
+
+@ti.func
+def _real(model: ti.template(), value):
+    """A tool pose or twist in the working precision (the fast solver keeps them in float64; a no-op where
+    they are stored in it)."""
+    return ti.cast(value, model.real)
+
+
+@ti.func
+def walls(model: ti.template(), xn, vn):
+    """Domain walls at lower/upper: nodes within half a cell of a wall lose their velocity into it (slip,
+    optional Coulomb friction). Whole-vector updates only: Taichi's reverse mode mishandles a vector component
+    written inside a runtime branch."""
+    half = 0.5 * model.dx
+    for d in ti.static(range(3)):
+        into = (xn[d] < model.lower[d] + half * 1.01 and vn[d] < 0.0) or \
+            (xn[d] > model.upper[d] - half * 1.01 and vn[d] > 0.0)
+        if into:
+            normal_speed = ti.abs(vn[d])
+            vn = vn * (1.0 - ti.Vector.unit(3, d, float))
+            if ti.static(model.wall_friction > 0.0):
+                vt_norm = statics.safe_norm(vn)
+                if vt_norm > 1e-12:
+                    vn *= ti.max(0.0, 1.0 - model.wall_friction * normal_speed / vt_norm)
+    return vn
+
+
+@ti.func
+def clamp_to_walls(model: ti.template(), xp, vp):
+    """Particles past a wall go back onto it and lose their velocity into it (whole-vector form, see walls)."""
+    lo, hi = ti.Vector(model.lower), ti.Vector(model.upper)
+    below = ti.cast(xp < lo, float)
+    above = ti.cast(xp > hi, float)
+    xp = ti.min(ti.max(xp, lo), hi)
+    vp = vp - below * ti.min(vp, 0.0) - above * ti.max(vp, 0.0)
+    return xp, vp
+
+
+@ti.func
+def project(model: ti.template(), xp, vp):
+    """After G2P: out of the statics, then back from past the walls."""
+    for k in ti.static(range(len(model.colliders))):
+        xp, vp = model.colliders[k].particle(xp, vp)
+    return clamp_to_walls(model, xp, vp)

@@ -1,0 +1,156 @@
+"""The Model: everything about a scene that does not change during a rollout.
+
+A Model is made once by `Scene.build()` and shared by both solvers (in the manner of NVIDIA Warp's
+`warp.sim.Model`): the grid's geometry and time step, each particle's mass, rest volume and material, the
+materials' parameters, the statics and the tools' shapes as Taichi functions, and the rigid bodies' rest
+configuration. What changes (particles, tool poses) is a State (state.py); what drives a step (tool twists)
+is a Control (control.py).
+
+Grid (SI units): Δx = the scene's cell size; nodes sit at origin + k Δx with origin = lower − (PAD − ½) Δx, so
+the outermost wall nodes are half a cell inside the domain walls at `lower` and `upper` (particles, which
+stop about half a cell beyond the last node that stops them, stop at the walls), and PAD cells of grid
+outside the walls keep every particle's 3×3×3 stencil on the grid. Particle rest volume V⁰ = s³ for a
+lattice spacing s, mass m = ρ V⁰.
+
+Mass floor: nodes lighter than a millionth of the lightest particle are treated as empty. A node at the edge
+of a particle's stencil can get a weight of 1e-20 or less; its mass squared underflows in float32 and the
+gradient of v = mv/m (−mv/m²) overflows to infinity, then NaN. The floor drops only nodes whose velocity
+reaches particles with weights under 1e-6.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import constitutive, statics
+from fluidlab_core.engine.rigid import RigidModel
+from fluidlab_core.engine.state import State, StateBuffer
+from fluidlab_core.engine.tools import Tool
+
+PAD = 3  # grid cells outside the domain walls on every side
+
+
+@dataclass
+class ModelSpec:
+    """What `Scene.build` hands to the Model, in SI units (world frame)."""
+
+    lower: np.ndarray  # domain walls (m)
+    upper: np.ndarray
+    dx: float  # grid spacing (m)
+    dt: float  # substep (s)
+    substeps: int  # substeps per step
+    gravity: np.ndarray  # m/s²
+    wall_friction: float
+    x: np.ndarray  # (N, 3) initial positions (m)
+    v: np.ndarray  # (N, 3) initial velocities (m/s)
+    material_index: np.ndarray  # (N,) index into `materials`
+    body_index: np.ndarray  # (N,) rigid body index or -1
+    rest_volume: np.ndarray  # (N,) m³
+    materials: list  # Material objects
+    statics: list = field(default_factory=list)  # scene.StaticHandle: shape, friction, sticky
+    tools: list = field(default_factory=list)  # tools.ToolSpec
+    body_shapes: list = field(default_factory=list)  # each rigid body's Shape at rest (world frame)
+
+
+@ti.data_oriented
+class Model:
+    """The constant part of a scene on the device (see the module docstring)."""
+
+    def __init__(self, spec: ModelSpec, real):
+        self.spec = spec
+        self.real = real
+        n = len(spec.x)
+        self.n_particles = n
+        self.dx = float(spec.dx)
+        self.inv_dx = 1.0 / self.dx
+        self.dt = float(spec.dt)  # substep (s)
+        self.substeps = int(spec.substeps)
+        self.step_dt = self.dt * self.substeps
+        self.origin = tuple(float(v) for v in spec.lower - (PAD - 0.5) * self.dx)
+        self.lower = tuple(float(v) for v in spec.lower)
+        self.upper = tuple(float(v) for v in spec.upper)
+        self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD
+                                for d in range(3))
+        self.gravity = tuple(float(g) for g in spec.gravity)
+        self.wall_friction = float(spec.wall_friction)
+        density = np.array([m.density for m in spec.materials], dtype=np.float64)
+        mass = np.asarray(spec.rest_volume, dtype=np.float64) * density[spec.material_index]
+        self.mass_floor = float(1e-6 * mass.min()) if n else 0.0
+
+        # constitutive models present, unrolled statically by the kernels; one parameter struct field each
+        names = sorted({m.model for m in spec.materials})
+        self.constitutive = [constitutive.get(name) for name in names]
+        self.stress_funcs = [constitutive.with_svd(m) for m in self.constitutive]
+        self.svd_models = [k for k, m in enumerate(self.constitutive) if m.needs_svd]
+        np_real = self.np_real
+        self.params = []
+        for m in self.constitutive:
+            table = ti.Struct.field({name: real for name in m.params}, shape=len(spec.materials))
+            values = {name: np.zeros(len(spec.materials), dtype=np_real) for name in m.params}
+            for i, mat in enumerate(spec.materials):
+                if mat.model == m.name:
+                    given = mat.kernel_params()
+                    missing = [p for p in m.params if p not in given]
+                    extra = [p for p in given if p not in m.params]
+                    if missing or extra:
+                        raise ValueError(f"material {mat.name!r} ({type(mat).__name__}): model {m.name!r} takes "
+                                         f"parameters {m.params}; kernel_params() gave {tuple(given)}")
+                    for p in m.params:
+                        values[p][i] = given[p]
+            table.from_numpy(values)
+            self.params.append(table)
+
+        # per particle
+        self.mass = ti.field(real, shape=n)  # kg
+        self.rest_volume = ti.field(real, shape=n)  # V⁰ (m³)
+        self.material = ti.field(ti.i32, shape=n)  # index into the scene's materials (rows of self.params)
+        self.model = ti.field(ti.i32, shape=n)  # index into self.constitutive
+        self.mass.from_numpy(mass.astype(np_real))
+        self.rest_volume.from_numpy(np.asarray(spec.rest_volume).astype(np_real))
+        self.material.from_numpy(np.asarray(spec.material_index, dtype=np.int32))
+        model_of_material = np.array([names.index(m.model) for m in spec.materials], dtype=np.int32)
+        self.model.from_numpy(model_of_material[spec.material_index])
+
+        # statics and tools as Taichi functions (SDFs in the world or tool frame)
+        self.colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
+                                           0.01 * self.dx, self.dx) for st in spec.statics]
+        self.tool_specs = list(spec.tools)
+        self.tools = [Tool(t, real, self.dx) for t in spec.tools]
+        self.n_tools = len(self.tools)
+        # the substep as a float64 field: the fast solver advances its float64 tool poses with it (a Python
+        # constant in a kernel takes the working precision)
+        self.tool_dt = ti.field(ti.f64, shape=())
+        self.tool_dt[None] = self.dt
+
+        self.rigid = None
+        if np.any(spec.body_index >= 0):
+            self.rigid = RigidModel(spec.body_index, spec.x, mass, real, spec.body_shapes, self.dx)
+
+    @property
+    def np_real(self):
+        return np.float64 if self.real == ti.f64 else np.float32
+
+    @property
+    def has_rigid(self) -> bool:
+        return self.rigid is not None
+
+    def initial_state(self) -> State:
+        """The state the scene was built with: particles at rest shape (F = I, C = 0), tools at their start
+        poses."""
+        from scipy.spatial.transform import Rotation
+
+        r, n = self.np_real, self.n_particles
+        spec = self.spec
+        position = np.array([t.position for t in self.tool_specs], dtype=np.float64).reshape(-1, 3)
+        rotation = np.array([Rotation.from_quat(t.quaternion).as_matrix() for t in self.tool_specs],
+                            dtype=np.float64).reshape(-1, 3, 3)
+        return State(np.asarray(spec.x, dtype=r), np.asarray(spec.v, dtype=r), np.zeros((n, 3, 3), r),
+                     np.tile(np.eye(3, dtype=r), (n, 1, 1)), position, rotation, 0)
+
+    def state(self) -> StateBuffer:
+        """A device state of one slot for the fast solver (tool poses in float64), set to the initial state."""
+        buf = StateBuffer(self.n_particles, self.n_tools, 1, self.real, pose_real=ti.f64)
+        buf.write(0, self.initial_state())
+        return buf

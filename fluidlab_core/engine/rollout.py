@@ -1,0 +1,158 @@
+"""The rollout loop: N steps of a solver with tool twists, losses evaluated after the steps they name.
+
+Every way of running the simulation goes through `run`: `Simulator.step` and `Simulator.rollout` on the fast
+solver, the forward pass of a checkpointed gradient rollout on the differentiable solver (checkpoint.py), and
+through those `Task.evaluate`, the Gymnasium environments' `step` and sim_node's fluid twin.
+
+    twists ──plan (workspace clipping, host, float64)──▶ applied twists
+    for each block of steps:  stepper.run_block(block)            (fast solver: one step; differentiable
+                              losses on stepper.states(block)      solver: one checkpoint segment)
+                              stepper.check(block)                 (NaN watch)
+
+A stepper adapts a solver to the loop: `FastStepper` steps a one-slot StateBuffer in place and reads it after
+each step; `SegmentStepper` runs a whole checkpoint segment through the differentiable solver's buffer and
+then reads the states of the steps a loss needs, many per launch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fluidlab_core.engine.control import Control
+from fluidlab_core.losses import StepState
+
+LOSS_READ_BYTES = 16e6  # states read back per launch for the loss (SegmentStepper.states)
+
+
+@dataclass
+class RolloutResult:
+    """Loss of a rollout and, when requested, its gradients (float64 numpy arrays, SI units).
+
+    grad_actions: (N, n_tools, 6) dL/d(vx, vy, vz, wx, wy, wz) per step (zero where the action mask or the
+    workspace clipping leaves an action no effect); grad_tool_position: (n_tools, 3) dL/dp of the initial
+    tool origins; grad_tool_rotation: (n_tools, 3) dL/dθ for an initial rotation R₀ ← exp([θ]×) R₀ (world
+    frame); grad_velocities / grad_positions: (n_particles, 3) dL/dv⁰, dL/dx⁰ of the initial particle state.
+    terms: per-step values (N,) of the extra loss terms asked for by name (`terms=` of the rollout)."""
+
+    loss: float
+    step_losses: np.ndarray  # (N,) loss contributed after each step
+    clipped: np.ndarray  # (N, n_tools) workspace clipping per step
+    grad_actions: np.ndarray | None = None
+    grad_tool_position: np.ndarray | None = None
+    grad_tool_rotation: np.ndarray | None = None
+    grad_velocities: np.ndarray | None = None
+    grad_positions: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)  # segments, segment_steps, checkpoint bytes, seconds
+    terms: dict = field(default_factory=dict)
+
+
+class FastStepper:
+    """The fast solver on a one-slot StateBuffer, one step per block. `check_every`: steps between NaN checks
+    (0: never); `on_nonfinite(fields, particle, step)` raises the caller's error."""
+
+    def __init__(self, solver, state, dt: float, check_every: int = 0, on_nonfinite=None, first_step: int = 0):
+        self.solver, self.state, self.dt = solver, state, dt
+        self.check_every, self.on_nonfinite = int(check_every), on_nonfinite
+        self.first_step = first_step  # steps taken before the rollout (the NaN check counts from the start)
+        self.block_steps = 1
+
+    def run_block(self, block: range, applied: np.ndarray, progress=None, phase: str = "forward", b: int = 0):
+        for j, g in enumerate(block):
+            self.solver.step(self.state, Control(applied[j]))
+            if progress:
+                progress(phase, g + 1, None)
+
+    def states(self, block: range, steps, step_offset: int):
+        """The StepState after the block's last step (the only one the one-slot buffer holds)."""
+        if not steps:
+            return
+        assert list(steps) == [block[-1]], "a one-slot buffer holds only the block's last step"
+        x, v, tp, tR = self.state.read_steps([0])
+        g = block[-1]
+        k = step_offset + g + 1
+        yield g, StepState(k, k * self.dt, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0])
+
+    def check(self, block: range):
+        step = self.first_step + block[-1] + 1
+        if self.check_every and step % self.check_every == 0:
+            fields, particle = self.state.nonfinite(0)
+            if fields:
+                self.on_nonfinite(fields, particle, step)
+
+
+class SegmentStepper:
+    """The differentiable solver, one checkpoint segment of `block_steps` steps per block, starting each from
+    slot 0 of its buffer. `keep(block_index)`: whether the segment keeps the stores its backward reads."""
+
+    def __init__(self, solver, block_steps: int, keep=lambda b: True, on_nonfinite=None):
+        self.solver, self.block_steps, self.keep, self.on_nonfinite = solver, int(block_steps), keep, on_nonfinite
+        self.dt = solver.model.step_dt
+        n = solver.n_particles
+        itemsize = np.dtype(solver.np_real).itemsize
+        self.per_chunk = max(1, int(LOSS_READ_BYTES // max(1, 2 * n * 3 * itemsize)))
+
+    def run_block(self, block: range, applied: np.ndarray, progress=None, phase: str = "forward", b: int = 0):
+        sub = self.solver.substeps
+        self.solver.state.write_twists(applied, sub)
+        substep = self.solver.substep if self.keep(b) else self.solver.substep_no_store
+        for j, g in enumerate(block):
+            for i in range(sub):
+                substep(j * sub + i)
+            if progress:
+                progress(phase, g + 1, None)
+
+    def states(self, block: range, steps, step_offset: int):
+        """StepStates after each of `steps` (within the buffered block), read a chunk of steps per launch and
+        handed out one at a time (each in float64 only while the loss looks at it)."""
+        sub = self.solver.substeps
+        steps = list(steps)
+        for i in range(0, len(steps), self.per_chunk):
+            chunk = steps[i:i + self.per_chunk]
+            x, v, tp, tR = self.solver.state.read_steps([(g - block.start + 1) * sub for g in chunk])
+            for j, g in enumerate(chunk):
+                k = step_offset + g + 1
+                yield g, StepState(k, k * self.dt, x[j].astype(np.float64), v[j].astype(np.float64), tp[j], tR[j])
+
+    def check(self, block: range):
+        fields, particle = self.solver.state.nonfinite(len(block) * self.solver.substeps)
+        if fields and self.on_nonfinite:
+            self.on_nonfinite(fields, particle, block[-1] + 1)
+
+
+def run(stepper, applied: np.ndarray, losses: dict, *, step_offset: int = 0, horizon: int | None = None,
+        want_grad=None, on_block=None, progress=None, phase: str = "forward", grads: dict | None = None):
+    """Run len(applied) steps of `stepper` with the (clipped) twists `applied` (N, n_tools, 6).
+
+    losses: {name: Loss}, each evaluated after the steps it names (StepState.step = step_offset + k after the
+        rollout's k-th step, horizon `horizon`, default step_offset + N).
+    want_grad(name, g): whether to keep the gradient of loss `name` after step g (0-based).
+    on_block(b, block): called before block b (a range of 0-based steps) runs.
+    progress(phase, done, total): called once per step.
+    grads: the dict that collects {g: gradients} of the losses that asked for them (a new one by default).
+    Returns ({name: (N,) values}, grads).
+    """
+    n = len(applied)
+    horizon = horizon if horizon is not None else step_offset + n
+    values = {name: np.zeros(n) for name in losses}
+    grads = {} if grads is None else grads
+    K = stepper.block_steps
+
+    def tick(ph, done, _):
+        if progress:
+            progress(ph, done, n)
+
+    for b in range(-(-n // K)):
+        block = range(b * K, min(n, (b + 1) * K))
+        if on_block:
+            on_block(b, block)
+        stepper.run_block(block, applied[block.start:block.stop], tick, phase, b)
+        active = [g for g in block if any(loss.active(step_offset + g + 1, horizon) for loss in losses.values())]
+        for g, state in stepper.states(block, active, step_offset):
+            for name, loss in losses.items():
+                keep = bool(want_grad and want_grad(name, g))
+                values[name][g], gradient = loss(state, horizon, grad=keep)
+                if keep:
+                    grads[g] = gradient
+        stepper.check(block)
+    return values, grads

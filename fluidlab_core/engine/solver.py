@@ -1,0 +1,181 @@
+"""The MLS-MPM substep on a StateBuffer, and the fast (in-place, forward-only) solver.
+
+One substep (formulas in transfer.py, grid.py, constitutive.py, tools.py, rigid.py), as kernels in physical
+order:
+
+    P2G          strain update, constitutive model, scatter of mass and momentum
+    grid update  gravity, statics, tools, walls
+    tools        poses advance: p ← p + Δt v, R ← exp([ω]× Δt) R
+    G2P          gather of velocity and affine velocity, advection, projection out of statics and walls
+    rigid        projection of rigid bodies to their best rigid motion (only with rigid bodies)
+
+`Solver.forward_kernel` runs the first four as three parallel loops in one launch (a parallel launch is the
+main cost at small sizes): particles (P2G), nodes (sum of the per-thread grid copies and the grid update),
+then particles again (G2P), with the tools' poses advanced in between. It reads slot s_in of a StateBuffer
+and writes slot s_out: the fast solver (`FastSolver`) steps a one-slot buffer in place (s_in = s_out = 0);
+the differentiable solver (diff_solver.py, a subclass) writes slot s + 1 from slot s and, with `keep`,
+stores what its backward reads. Both run this kernel: the physics is written once.
+
+Solvers hold no state of their own beyond their buffers (the grid, its per-thread copies, the stress and
+rigid-body intermediates): the state is the StateBuffer passed in, the constants are the Model.
+"""
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import grid, transfer
+from fluidlab_core.engine.rigid import RigidProjection
+from fluidlab_core.engine.control import Control
+from fluidlab_core.engine.state import StateBuffer
+from fluidlab_core.engine.tools import advance_pose
+
+
+@ti.data_oriented
+class Solver:
+    """Buffers and the forward substep, shared by the fast and the differentiable solver.
+
+    scatter_copies: per-thread grid copies for the P2G scatter (CPU); 0 scatters atomically (GPU)."""
+
+    def __init__(self, model, scatter_copies: int = 0, needs_grad: bool = False):
+        self.model = model
+        real, n = model.real, model.n_particles
+        self.real = real
+        self.n_particles = n
+        g = needs_grad
+        self.grid_m = ti.field(real, shape=model.grid_shape, needs_grad=g)  # node mass (kg)
+        self.grid_mv = ti.Vector.field(3, real, shape=model.grid_shape, needs_grad=g)  # node momentum (kg m/s)
+        self.grid_v = ti.Vector.field(3, real, shape=model.grid_shape, needs_grad=g)  # node velocity after BCs
+        self.scatter_copies = int(scatter_copies)
+        self.private = self.scatter_copies > 0
+        self.copies = max(self.scatter_copies, 1)
+        self.chunk = -(-n // self.copies)
+        if self.private:
+            shape = (self.copies,) + tuple(model.grid_shape)
+            self.copies_m = ti.field(real, shape=shape)  # per-thread node mass (kg)
+            self.copies_mv = ti.Vector.field(3, real, shape=shape)  # per-thread node momentum, or its gradient
+        self.rigid = None
+        self.has_rigid = model.has_rigid
+        if model.has_rigid:
+            self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=g)  # F after the model, before projection
+            self.rigid = RigidProjection(model, self.F_model, needs_grad)
+        # the substep's twists from the host (the fast solver's; the differentiable one keeps them per slot)
+        self._no_twist = np.zeros((1, 6))
+
+    @property
+    def np_real(self):
+        return self.model.np_real
+
+    @ti.kernel
+    def forward_kernel(self, state: ti.template(), s_in: ti.i32, s_out: ti.i32, keep: ti.template(),
+                       twist: ti.types.ndarray(), host_twist: ti.template()):
+        """One substep from slot s_in to slot s_out (see the module docstring). With `host_twist`, the tools'
+        twists come from `twist` (n_tools, 6); with `keep`, the differentiable solver's stores are filled."""
+        if ti.static(host_twist):
+            ti.loop_config(serialize=True)
+            for k in range(self.model.n_tools):
+                state.tool_v[k, s_in] = ti.Vector([twist[k, i] for i in ti.static(range(3))])
+                state.tool_w[k, s_in] = ti.Vector([twist[k, 3 + i] for i in ti.static(range(3))])
+        # P2G
+        if ti.static(self.private):
+            # each thread scatters its share of particles into its own grid copy, without atomics (the copies
+            # are zero: allocated so, and zeroed again as they are summed)
+            ti.loop_config(block_dim=1)
+            for c in range(self.copies):
+                for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                    self._p2g(state, s_in, s_out, keep, c, p)
+        else:
+            for I in ti.grouped(self.grid_m):
+                self.grid_m[I] = 0.0
+                self.grid_mv[I] = ti.Vector.zero(float, 3)
+            for p in range(self.n_particles):
+                self._p2g(state, s_in, s_out, keep, 0, p)
+        # grid update
+        for I in ti.grouped(self.grid_m):
+            m = 0.0
+            mv = ti.Vector.zero(float, 3)
+            if ti.static(self.private):
+                m, mv = transfer.reduce_copies(self.copies_m, self.copies_mv, self.copies, I)
+            else:
+                m, mv = self.grid_m[I], self.grid_mv[I]
+            vn = grid.node_velocity(self.model, I, m, mv, state, s_in)
+            self.grid_m[I] = m
+            self.grid_v[I] = vn
+            if ti.static(keep):
+                self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
+        # tools
+        ti.loop_config(serialize=True)
+        for k in range(self.model.n_tools):
+            self._advance_tool(state, s_in, s_out, k)
+        # G2P
+        for p in range(self.n_particles):
+            new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
+            xp = state.x[s_in, p] + self.model.dt * new_v
+            if ti.static(keep):
+                self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
+                if ti.static(self.has_rigid):
+                    self.store_C_pre[s_in, p] = new_C
+            xp, new_v = grid.project(self.model, xp, new_v)
+            self._store_g2p(state, s_out, p, xp, new_v, new_C)
+
+    @ti.func
+    def _p2g(self, state: ti.template(), s_in, s_out, keep: ti.template(), c, p):
+        """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
+        atomically into the grid)."""
+        Cp = state.C[s_in, p]
+        Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, state.F[s_in, p]), Cp)
+        if ti.static(self.has_rigid):
+            self.F_model[p] = Fp
+        else:
+            state.F[s_out, p] = Fp
+        if ti.static(keep):
+            self.store_tau[s_in, p] = tau
+        if ti.static(self.private):
+            transfer.scatter(self.model, self.copies_m, self.copies_mv, c, True, state.x[s_in, p], state.v[s_in, p], Cp,
+                             tau, p)
+        else:
+            transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p], state.v[s_in, p], Cp,
+                             tau, p)
+
+    @ti.func
+    def _advance_tool(self, state: ti.template(), s_in, s_out, k):
+        """Tool k's pose over the substep, in the precision of the state's tool fields."""
+        dt = ti.cast(self.model.tool_dt[None], state.pose_real)
+        state.tool_p[k, s_out], state.tool_R[k, s_out] = advance_pose(
+            state.tool_p[k, s_in], state.tool_R[k, s_in], state.tool_v[k, s_in], state.tool_w[k, s_in], dt)
+
+    @ti.func
+    def _store_g2p(self, state: ti.template(), s_out, p, xp, vp, Cp):
+        """Into slot s_out, or with rigid bodies into the projection's input (x_g, v_g, C_g)."""
+        if ti.static(self.has_rigid):
+            self.rigid.x_g[p], self.rigid.v_g[p], self.rigid.C_g[p] = xp, vp, Cp
+        else:
+            state.x[s_out, p], state.v[s_out, p], state.C[s_out, p] = xp, vp, Cp
+
+
+class FastSolver(Solver):
+    """The forward solver: steps a one-slot StateBuffer in place (`Model.state()`), no gradients."""
+
+    def step(self, state: StateBuffer, control: Control):
+        """Advance `state` in place by one step (the model's substeps) with the tools' twists of `control`
+        (already clipped to the workspaces: tools.plan)."""
+        twist = control.twists if self.model.n_tools else self._no_twist
+        for _ in range(self.model.substeps):
+            self.forward_kernel(state, 0, 0, False, twist, self.model.n_tools > 0)
+            if self.rigid is not None:
+                self.rigid.forward(state, 0)
+
+    @ti.kernel
+    def _stresses(self, state: ti.template(), out: ti.types.ndarray()):
+        for p in range(self.n_particles):
+            Fp = state.F[0, p]
+            _, tau = transfer.stress(self.model, p, Fp, state.C[0, p])
+            sigma = tau / Fp.determinant()
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                out[p, i, j] = sigma[i, j]
+
+    def stresses(self, state: StateBuffer) -> np.ndarray:
+        """(N, 3, 3) Cauchy stress σ = τ/J of every particle of the state, from its model at its current F and C
+        (Pa)."""
+        out = np.zeros((self.n_particles, 3, 3), self.np_real)
+        self._stresses(state, out)
+        return out.astype(np.float64)
