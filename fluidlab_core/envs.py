@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-ENV_IDS = {name: f"FluidLab/{name}-v0" for name in ("LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard")}
+
+
+def env_id(task_name: str) -> str:
+    """The Gymnasium id of a registered task."""
+    return f"FluidLab/{task_name}-v0"
 
 
 def _import_gymnasium():
@@ -95,6 +99,7 @@ class FluidLabEnv(gym.Env):
         n = self.task.observation_size()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
         self._term = self.task.step_term()
+        self._tool = [spec.name for spec in self.sim.tool_specs].index(self.task.tool_name)
         self._twist = np.zeros(6)
         self._steps = 0
         self.metadata = dict(self.metadata, render_fps=max(1, int(round(1.0 / self.task.dt / 10))))
@@ -111,16 +116,16 @@ class FluidLabEnv(gym.Env):
         a = np.asarray(action, dtype=np.float64).reshape(self.task.n_actions)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action contains NaN or infinity: {action!r}")
-        twist = self.task.twists(a[None])[0]
-        info = self.sim.step(twist)
-        self._twist = twist
+        twist = self.task.twists(a[None])
+        res = self.sim.rollout(twist, self._term, step_offset=self._steps, horizon=self.task.horizon)
+        self._twist = twist[0]
         self._steps += 1
-        step_loss = self._term(self.task.step_state(self.sim), self.task.horizon)[0]
+        step_loss = float(res.step_losses[0])
         reward = self.task.reward(step_loss)
         truncated = self._steps >= self.task.horizon
         obs = self.task.observe(self.sim, self._twist)
-        return obs, float(reward), False, truncated, {"clipped": info["clipped"][self.task.tool_name],
-                                                    "step_loss": float(step_loss), "time": self.sim.time}
+        return obs, float(reward), False, truncated, {"clipped": bool(res.clipped[0, self._tool]),
+                                                    "step_loss": step_loss, "time": self.sim.time}
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -129,10 +134,18 @@ class FluidLabEnv(gym.Env):
 
 
 def register():
-    """Register the ids with Gymnasium (idempotent)."""
-    for name, env_id in ENV_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="fluidlab_core.envs:FluidLabEnv", kwargs={"task_name": name})
+    """Register an id with Gymnasium for every task of the registry, yours included (idempotent; tasks
+    registered later get theirs from `tasks.register`)."""
+    from fluidlab_core import tasks
+
+    for name in tasks.names():
+        if env_id(name) not in gym.registry:
+            gym.register(id=env_id(name), entry_point="fluidlab_core.envs:FluidLabEnv", kwargs={"task_name": name})
 
 
 register()
+
+
+def unregister(task_name: str):
+    """Remove a task's id from Gymnasium's registry (tasks.unregister calls it)."""
+    gym.registry.pop(env_id(task_name), None)

@@ -1,5 +1,12 @@
-"""Each task's mounting (robot_models/mounting.json): where the task's scene sits in the robot base frame
-and the tool frame's pose relative to the flange (link8). Poses are [x, y, z, qx, qy, qz, qw]."""
+"""Each task's mounting: where the task's scene sits in the robot base frame, and the tool frame's pose
+relative to the flange (link8). Poses are [x, y, z, qx, qy, qz, qw].
+
+The tool offset is a fact about the task (the tool the simulation was built with) and comes from the task
+class (`Task.flange_to_tool`, `Task.tool_name`), for the paper's tasks and for tasks of your own registered
+with `fluidlab_core.tasks.register`. Where the scene sits is the lab's calibration: robot_models/mounting.json
+gives each task's `scene_origin`; a task it does not list has its scene at the base frame's origin (the tasks'
+scenes are written in the base frame).
+"""
 from __future__ import annotations
 
 import json
@@ -10,6 +17,8 @@ import numpy as np
 
 import robot_models
 
+IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
 
 @dataclass(frozen=True)
 class Mounting:
@@ -18,30 +27,37 @@ class Mounting:
     tool: str
     flange_to_tool: np.ndarray  # (7,) tool frame in the flange frame
 
-    @classmethod
-    def from_dict(cls, task: str, entry: dict) -> "Mounting":
-        def pose(key):
-            v = np.asarray(entry[key], dtype=float)
-            if v.shape != (7,) or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
-                raise ValueError(f"mounting of {task}: {key} must be 7 finite numbers [x, y, z, qx, qy, qz, qw]")
-            v[3:] /= np.linalg.norm(v[3:])
-            return v
 
-        return cls(task=task, scene_origin=pose("scene_origin"), tool=str(entry.get("tool", "tool")),
-                   flange_to_tool=pose("flange_to_tool"))
+def _pose(task: str, key: str, value) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    if v.shape != (7,) or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
+        raise ValueError(f"mounting of {task}: {key} must be 7 finite numbers [x, y, z, qx, qy, qz, qw], got {value!r}")
+    v[3:] /= np.linalg.norm(v[3:])
+    return v
 
 
-def tasks(path: str | Path | None = None) -> list[str]:
-    return sorted(_read(path)["tasks"])
+def tasks() -> list[str]:
+    """The tasks that can be mounted: every registered task."""
+    from fluidlab_core import tasks as registry
+
+    return registry.names()
 
 
 def load_mounting(task: str, path: str | Path | None = None) -> Mounting:
-    doc = _read(path)["tasks"]
-    if task not in doc:
-        raise KeyError(f"no mounting for task {task!r} in {path or robot_models.mounting_path()}: "
-                       f"known tasks are {', '.join(sorted(doc))}")
-    return Mounting.from_dict(task, doc[task])
+    """The mounting of a registered task: its tool offset from the task, its scene origin from mounting.json."""
+    from fluidlab_core import tasks as registry
 
-
-def _read(path) -> dict:
-    return json.loads(Path(path or robot_models.mounting_path()).read_text())
+    if task not in registry.names():
+        raise KeyError(f"no mounting for task {task!r}: known tasks are {', '.join(registry.names())}")
+    cls = registry.task_class(task)
+    doc = json.loads(Path(path or robot_models.mounting_path()).read_text())
+    unknown = sorted(set(doc["tasks"]) - set(registry.names()))
+    if unknown:
+        raise ValueError(f"{path or robot_models.mounting_path()} mounts unknown tasks {unknown}; known tasks are "
+                         f"{', '.join(registry.names())}")
+    entry = doc["tasks"].get(task, {})
+    if "flange_to_tool" in entry or "tool" in entry:
+        raise ValueError(f"{path or robot_models.mounting_path()}: the tool of {task} is the task's "
+                         f"(flange_to_tool, tool_name in its class), not the mounting file's")
+    return Mounting(task=task, scene_origin=_pose(task, "scene_origin", entry.get("scene_origin", IDENTITY)),
+                    tool=cls.tool_name, flange_to_tool=_pose(task, "flange_to_tool", cls.flange_to_tool))

@@ -85,7 +85,6 @@ from fluidlab_ros import workers
 MODES = ("twin", "robot")
 STATE_EVERY = 5  # a recording holds every command, and the arm states and tool poses of every 5th
 TARGETS = ("twin", "robot")
-SIZES = ("small", "paper")
 
 
 @dataclass
@@ -325,6 +324,7 @@ class SimNode(Node):
     def _check_optimise(self, g) -> dict:
         from fluidlab_core import tasks
         from fluidlab_core.optim import METHODS
+        from fluidlab_core.tasks import SIZES
 
         if g.task not in tasks.names():
             raise ValueError(f"unknown task {g.task!r}; tasks: {', '.join(tasks.names())}")

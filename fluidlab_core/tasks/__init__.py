@@ -1,38 +1,122 @@
-"""The task registry: `names()` and `make(name, size)`.
+"""The task registry: `names()`, `make(name, size)` and `register(...)` for tasks of your own.
 
 Each task is a class in a module of its family (cup_tasks: LatteArtStir, Mixing; gathering: GatheringEasy,
 GatheringHard); variants of a family are the same class with a parameter. Making a task compiles nothing: its
 simulators are built on first use (`Task.simulator()`).
+
+Tasks of your own (docs/extending.md) join the registry, and with it the Gymnasium ids
+(`FluidLab/<name>-v0`), the `fluidlab` command and sim_node, without editing this package:
+
+    from fluidlab_core import tasks
+
+    @tasks.register
+    class Stirring(tasks.Task): ...
+
+A process that did not import your module (sim_node and its worker processes, `fluidlab optimise`) finds it
+through either
+  * the environment variable FLUIDLAB_TASKS, a comma-separated list of modules to import
+    (FLUIDLAB_TASKS=my_lab.tasks), or
+  * an entry point in the group `fluidlab.tasks` of an installed package (its value: a module, imported, or a
+    function, called), e.g. in setup.py: entry_points={"fluidlab.tasks": ["my_lab = my_lab.tasks"]}.
+Both are read the first time the registry is asked for a task (never at import).
 """
 from __future__ import annotations
 
+import importlib
+import os
+import sys
+
 from fluidlab_core.tasks.base import SIZES, Task
 
+PLUGIN_GROUP = "fluidlab.tasks"
+PLUGIN_ENV = "FLUIDLAB_TASKS"
 
-def _registry() -> dict:
+_registry: dict[str, type] = {}
+_plugins_loaded = False
+
+
+def register(cls=None, *, name: str | None = None):
+    """Register a Task subclass under `name` (default: the class's `name` attribute). Usable as a decorator,
+    with or without arguments. Registering the same class twice is a no-op; another class under a name in
+    use is refused."""
+    def add(task_cls):
+        if not (isinstance(task_cls, type) and issubclass(task_cls, Task)):
+            raise TypeError(f"only subclasses of fluidlab_core.tasks.Task can be registered, got {task_cls!r}")
+        key = name or task_cls.name
+        if not isinstance(key, str) or not key.isidentifier():
+            raise ValueError(f"a task needs a name that is an identifier (class attribute `name` or name=...), "
+                             f"got {key!r} for {task_cls.__name__}")
+        old = _registry.get(key)
+        if old is not None and old is not task_cls:
+            raise ValueError(f"a task named {key!r} is already registered ({old.__module__}.{old.__qualname__})")
+        _registry[key] = task_cls
+        if "fluidlab_core.envs" in sys.modules:  # already imported: give the new task its Gymnasium id too
+            from fluidlab_core import envs
+
+            envs.register()
+        return task_cls
+
+    return add if cls is None else add(cls)
+
+
+def unregister(name: str):
+    """Take a task out of the registry (and its Gymnasium id out of Gymnasium's), e.g. to register an edited
+    class again in a notebook. Unknown names are refused."""
+    _load_plugins()
+    if name not in _registry:
+        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(_registry)}")
+    del _registry[name]
+    if "fluidlab_core.envs" in sys.modules:
+        sys.modules["fluidlab_core.envs"].unregister(name)
+
+
+def _builtin():
     from fluidlab_core.tasks import cup_tasks, gathering
 
-    return {
-        "LatteArtStir": cup_tasks.LatteArtStir,
-        "Mixing": cup_tasks.Mixing,
-        "GatheringEasy": gathering.GatheringEasy,
-        "GatheringHard": gathering.GatheringHard,
-    }
+    for cls in (cup_tasks.LatteArtStir, cup_tasks.Mixing, gathering.GatheringEasy, gathering.GatheringHard):
+        register(cls)
+
+
+def _load_plugins():
+    """Built-in tasks, then FLUIDLAB_TASKS modules and `fluidlab.tasks` entry points (once per process)."""
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
+    _builtin()
+    for module in filter(None, (m.strip() for m in os.environ.get(PLUGIN_ENV, "").split(","))):
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise ImportError(f"{PLUGIN_ENV} names module {module!r}, which cannot be imported: {err}") from err
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=PLUGIN_GROUP):
+        loaded = ep.load()
+        if callable(loaded) and not isinstance(loaded, type):
+            loaded()
 
 
 def names() -> list[str]:
-    """The registered task names."""
-    return list(_registry())
+    """The registered task names (the paper's, then your own)."""
+    _load_plugins()
+    return list(_registry)
+
+
+def task_class(name: str) -> type:
+    """The class registered under `name`; unknown names list the known ones."""
+    _load_plugins()
+    if name not in _registry:
+        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(_registry)}")
+    return _registry[name]
 
 
 def make(name: str, size: str = "small") -> Task:
     """A task by name; size "small" (tests, laptops) or "paper" (the paper's 64³ grid, about 100k particles)."""
-    registry = _registry()
-    if name not in registry:
-        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(registry)}")
+    cls = task_class(name)
     if size not in SIZES:
         raise ValueError(f"size must be one of {', '.join(SIZES)}, got {size!r}")
-    return registry[name](size)
+    return cls(size)
 
 
-__all__ = ["names", "make", "Task"]
+__all__ = ["names", "make", "register", "unregister", "task_class", "Task", "SIZES"]

@@ -61,10 +61,6 @@ class Gathering(Task):
     reward_c1 = 1.0
     reward_c2 = 200.0
 
-    def __init__(self, size="small"):
-        super().__init__(size)
-        self.name = "GatheringHard" if self.hard else "GatheringEasy"
-
     def _domain(self):
         return TANK_LOWER, TANK_UPPER
 
@@ -127,9 +123,11 @@ class Gathering(Task):
 
 
 class GatheringEasy(Gathering):
+    name = "GatheringEasy"
     hard = False
 
 
 class GatheringHard(Gathering):
+    name = "GatheringHard"
     hard = True
 
