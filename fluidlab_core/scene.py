@@ -287,13 +287,17 @@ class Scene:
             rest_volume=np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies]),
             materials=mats, statics=list(self.statics), tools=list(self.tools),
             body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0])
+        # every field is allocated before any data goes in: one SNode tree for all (engine/model.py)
         model = Model(spec, real)
         copies = runtime.scatter_copies()
         solver = FastSolver(model, scatter_copies=copies)
+        state = model.state()
         diff = None
         if requires_grad:
             from fluidlab_core.engine.diff_solver import DiffSolver, buffer_steps
 
             steps = buffer_steps(model, grad_memory, grad_max_steps)
             diff = DiffSolver(model, steps * self.substeps + 1, scatter_copies=copies)
-        return Simulator(self, model, solver, model.state(), handles, config, diff=diff)
+        model.upload()
+        state.write(0, model.initial_state())
+        return Simulator(self, model, solver, state, handles, config, diff=diff)

@@ -1,7 +1,7 @@
 """The differentiable solver: the substep of solver.py on time-indexed state, and its backward.
 
 State of substep s lives in slot s of a StateBuffer of `n_slots` (one checkpoint segment, state.py); a substep
-reads slot s and writes slot s + 1 with the same forward kernel as the fast solver (`Solver.forward_kernel`).
+reads slot s and writes slot s + 1 with the same forward substep as the fast solver (`Solver.mpm_substep`).
 Its gradient is Taichi's reverse-mode autodiff where that is cheap, and by hand where it is not: the SVD
 (svd.py, carried on to C and F by hand), the P2G scatter and the G2P gather (transfer.py). The backward of
 substep s (`substep_grad`) runs these kernels, built from the same functions as the forward, in reverse order:
@@ -129,7 +129,7 @@ class DiffSolver(Solver):
         forward did not keep: the SVD (the stress's backward reads it), with rigid bodies the stress's F_new
         (the rigid projection reads it) and the projection's body sums (not the slot s + 1 writes)."""
         if whole:
-            self.forward_kernel(self.state, s, s + 1, keep, self._no_twist, False)
+            self.forward_kernel(s, keep)
             if self.rigid is not None:
                 self.rigid.forward(self.state, s + 1)
             return
@@ -157,6 +157,11 @@ class DiffSolver(Solver):
             self.stress.grad(s, k)
         if self.model.svd_models:
             self.svd_grad(s)
+
+    @ti.kernel
+    def forward_kernel(self, s: ti.i32, keep: ti.template()):
+        """Slot s → slot s + 1 (Solver.mpm_substep), with the stores when `keep`."""
+        self.mpm_substep(self.state, s, s + 1, keep, 0, False)
 
     # --- SVD and stress -------------------------------------------------------------------------------
     @ti.kernel

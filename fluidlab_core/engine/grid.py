@@ -45,17 +45,10 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
         for k in ti.static(range(len(model.colliders))):
             vn = model.colliders[k].grid(xn, vn)
         for k in ti.static(range(model.n_tools)):
-            vn = model.tools[k].contact_at(xn, vn, _real(model, state.tool_p[k, s]), _real(model, state.tool_R[k, s]),
-                                           _real(model, state.tool_v[k, s]), _real(model, state.tool_w[k, s]))
+            vn = model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
+                                           state.tool_v_real[k, s], state.tool_w_real[k, s])
         vn = walls(model, xn, vn)
     return vn
-
-
-@ti.func
-def _real(model: ti.template(), value):
-    """A tool pose or twist in the working precision (the fast solver keeps them in float64; a no-op where
-    they are stored in it)."""
-    return ti.cast(value, model.real)
 
 
 @ti.func

@@ -12,6 +12,12 @@ stop about half a cell beyond the last node that stops them, stop at the walls),
 outside the walls keep every particle's 3×3×3 stencil on the grid. Particle rest volume V⁰ = s³ for a
 lattice spacing s, mass m = ρ V⁰.
 
+Allocation before data: the Model, the solvers and the states allocate their Taichi fields first and the data
+goes in afterwards (`Model.upload`, `Scene.build`). A field allocated after Taichi has run a kernel (a
+from_numpy is one) starts a new SNode tree, and the substep kernels, which read fields of every object, ran
+4–7 % slower across four trees than within one (measured in one process, interleaved, on the bench_grad
+scene).
+
 Mass floor: nodes lighter than a millionth of the lightest particle are treated as empty. A node at the edge
 of a particle's stencil can get a weight of 1e-20 or less; its mass squared underflows in float32 and the
 gradient of v = mv/m (−mv/m²) overflows to infinity, then NaN. The floor drops only nodes whose velocity
@@ -85,6 +91,7 @@ class Model:
         self.stress_funcs = [constitutive.with_svd(m) for m in self.constitutive]
         self.svd_models = [k for k, m in enumerate(self.constitutive) if m.needs_svd]
         np_real = self.np_real
+        self._uploads = []  # (field, numpy data) to upload once everything is allocated (module docstring)
         self.params = []
         for m in self.constitutive:
             table = ti.Struct.field({name: real for name in m.params}, shape=len(spec.materials))
@@ -99,7 +106,7 @@ class Model:
                                          f"parameters {m.params}; kernel_params() gave {tuple(given)}")
                     for p in m.params:
                         values[p][i] = given[p]
-            table.from_numpy(values)
+            self._uploads.append((table, values))
             self.params.append(table)
 
         # per particle
@@ -107,26 +114,33 @@ class Model:
         self.rest_volume = ti.field(real, shape=n)  # V⁰ (m³)
         self.material = ti.field(ti.i32, shape=n)  # index into the scene's materials (rows of self.params)
         self.model = ti.field(ti.i32, shape=n)  # index into self.constitutive
-        self.mass.from_numpy(mass.astype(np_real))
-        self.rest_volume.from_numpy(np.asarray(spec.rest_volume).astype(np_real))
-        self.material.from_numpy(np.asarray(spec.material_index, dtype=np.int32))
         model_of_material = np.array([names.index(m.model) for m in spec.materials], dtype=np.int32)
-        self.model.from_numpy(model_of_material[spec.material_index])
+        self._uploads += [(self.mass, mass.astype(np_real)),
+                          (self.rest_volume, np.asarray(spec.rest_volume).astype(np_real)),
+                          (self.material, np.asarray(spec.material_index, dtype=np.int32)),
+                          (self.model, model_of_material[spec.material_index])]
 
         # statics and tools as Taichi functions (SDFs in the world or tool frame)
-        self.colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx), st.friction, st.sticky,
-                                           0.01 * self.dx, self.dx) for st in spec.statics]
+        self.colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx, self._uploads), st.friction,
+                                           st.sticky, 0.01 * self.dx, self.dx) for st in spec.statics]
         self.tool_specs = list(spec.tools)
-        self.tools = [Tool(t, real, self.dx) for t in spec.tools]
+        self.tools = [Tool(t, real, self.dx, self._uploads) for t in spec.tools]
         self.n_tools = len(self.tools)
         # the substep as a float64 field: the fast solver advances its float64 tool poses with it (a Python
         # constant in a kernel takes the working precision)
         self.tool_dt = ti.field(ti.f64, shape=())
-        self.tool_dt[None] = self.dt
+        self._uploads.append((self.tool_dt, np.array(self.dt)))
 
         self.rigid = None
         if np.any(spec.body_index >= 0):
             self.rigid = RigidModel(spec.body_index, spec.x, mass, real, spec.body_shapes, self.dx)
+            self._uploads += self.rigid.uploads
+
+    def upload(self):
+        """Put the Model's data into its fields (once, after the solvers and states are allocated)."""
+        for field, data in self._uploads:
+            field.from_numpy(data)
+        self._uploads = []
 
     @property
     def np_real(self):
@@ -150,7 +164,5 @@ class Model:
                      np.tile(np.eye(3, dtype=r), (n, 1, 1)), position, rotation, 0)
 
     def state(self) -> StateBuffer:
-        """A device state of one slot for the fast solver (tool poses in float64), set to the initial state."""
-        buf = StateBuffer(self.n_particles, self.n_tools, 1, self.real, pose_real=ti.f64)
-        buf.write(0, self.initial_state())
-        return buf
+        """A device state of one slot for the fast solver (tool poses in float64), not yet written."""
+        return StateBuffer(self.n_particles, self.n_tools, 1, self.real, pose_real=ti.f64)

@@ -60,7 +60,6 @@ class RigidModel:
         self.rest_offset = ti.Vector.field(3, real, shape=n)  # q: rest position − rest centre of mass (m)
         self.rest_com = ti.Vector.field(3, real, shape=n_bodies)  # c⁰: centre of mass at rest (m)
         self.body_mass = ti.field(real, shape=n_bodies)  # M (kg)
-        self.body.from_numpy(body_index.astype(np.int32))
         q = np.zeros_like(np.asarray(x_rest, dtype=np.float64))
         com = np.zeros((n_bodies, 3))
         masses = np.zeros(n_bodies)
@@ -69,15 +68,17 @@ class RigidModel:
             com[b] = np.average(x_rest[sel], axis=0, weights=mass[sel])
             q[sel] = x_rest[sel] - com[b]
             masses[b] = mass[sel].astype(np_real).sum(dtype=np.float64)
-        self.rest_offset.from_numpy(q.astype(np_real))
-        self.rest_com.from_numpy(com.astype(np_real))
-        self.body_mass.from_numpy(masses.astype(np_real))
+        # uploaded by Model.upload once every field is allocated (model.py)
+        self.uploads = [(self.body, body_index.astype(np.int32)), (self.rest_offset, q.astype(np_real)),
+                        (self.rest_com, com.astype(np_real)), (self.body_mass, masses.astype(np_real))]
         self.sdfs, self.normals = [], []
         if shapes is not None and n_bodies <= MAX_EXCLUDING_BODIES:
             from fluidlab_core.engine import statics
 
-            self.sdfs = [statics.sdf_func(shape, real, 0.5 * dx) for shape in shapes]
+            uploads = []
+            self.sdfs = [statics.sdf_func(shape, real, 0.5 * dx, uploads) for shape in shapes]
             self.normals = [statics.sdf_normal(sdf, 0.01 * dx) for sdf in self.sdfs]
+            self.uploads += uploads
 
 
 @ti.data_oriented

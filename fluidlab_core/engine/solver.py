@@ -9,15 +9,16 @@ order:
     G2P          gather of velocity and affine velocity, advection, projection out of statics and walls
     rigid        projection of rigid bodies to their best rigid motion (only with rigid bodies)
 
-`Solver.forward_kernel` runs the first four as three parallel loops in one launch (a parallel launch is the
-main cost at small sizes): particles (P2G), nodes (sum of the per-thread grid copies and the grid update),
-then particles again (G2P), with the tools' poses advanced in between. It reads slot s_in of a StateBuffer
-and writes slot s_out: the fast solver (`FastSolver`) steps a one-slot buffer in place (s_in = s_out = 0);
-the differentiable solver (diff_solver.py, a subclass) writes slot s + 1 from slot s and, with `keep`,
-stores what its backward reads. Both run this kernel: the physics is written once.
+`Solver.mpm_substep` runs the first four as three parallel loops in one launch (a parallel launch is the main
+cost at small sizes): particles (P2G), nodes (sum of the per-thread grid copies and the grid update), then
+particles again (G2P); the tools' twists from the host and their advance ride in the first and last loop
+(a serial part of a kernel costs a task launch, about 40 µs here). It reads slot s_in of a StateBuffer and
+writes slot s_out: the fast solver (`FastSolver`) steps a one-slot buffer in place (s_in = s_out = 0); the
+differentiable solver (diff_solver.py, a subclass) writes slot s + 1 from slot s and, with `keep`, stores
+what its backward reads. Each calls it from a kernel of its own: the physics is written once.
 
 Solvers hold no state of their own beyond their buffers (the grid, its per-thread copies, the stress and
-rigid-body intermediates): the state is the StateBuffer passed in, the constants are the Model.
+rigid-body intermediates): the fast solver steps the StateBuffer passed in, the constants are the Model.
 """
 
 import numpy as np
@@ -58,29 +59,29 @@ class Solver:
         if model.has_rigid:
             self.F_model = ti.Matrix.field(3, 3, real, shape=n, needs_grad=g)  # F after the model, before projection
             self.rigid = RigidProjection(model, self.F_model, needs_grad)
-        # the substep's twists from the host (the fast solver's; the differentiable one keeps them per slot)
-        self._no_twist = np.zeros((1, 6))
 
     @property
     def np_real(self):
         return self.model.np_real
 
-    @ti.kernel
-    def forward_kernel(self, state: ti.template(), s_in: ti.i32, s_out: ti.i32, keep: ti.template(),
-                       twist: ti.types.ndarray(), host_twist: ti.template()):
-        """One substep from slot s_in to slot s_out (see the module docstring). With `host_twist`, the tools'
-        twists come from `twist` (n_tools, 6); with `keep`, the differentiable solver's stores are filled."""
-        if ti.static(host_twist):
-            ti.loop_config(serialize=True)
-            for k in range(self.model.n_tools):
-                state.tool_v[k, s_in] = ti.Vector([twist[k, i] for i in ti.static(range(3))])
-                state.tool_w[k, s_in] = ti.Vector([twist[k, 3 + i] for i in ti.static(range(3))])
-        # P2G
+    @ti.func
+    def mpm_substep(self, state: ti.template(), s_in, s_out, keep: ti.template(), twist: ti.template(),
+                host_twist: ti.template()):
+        """One substep from slot s_in to slot s_out (see the module docstring), called at the top of a kernel (its
+        loops are the kernel's parallel loops). With `host_twist`, the tools' twists come from the kernel's
+        array `twist` (n_tools, 6); with `keep`, the differentiable solver's stores are filled. Each solver's
+        kernel takes only the arguments it needs: at small sizes Taichi's handling of a launch's arguments (an
+        array, a template) costs as much as a tenth of the substep."""
+        # P2G (and the tools' twists from the host: nothing reads them before the grid update; a serial part of
+        # its own would cost a task launch, about 40 µs here)
         if ti.static(self.private):
             # each thread scatters its share of particles into its own grid copy, without atomics (the copies
             # are zero: allocated so, and zeroed again as they are summed)
             ti.loop_config(block_dim=1)
             for c in range(self.copies):
+                if ti.static(host_twist):
+                    if c == 0:
+                        self._twists_from_host(state, s_in, twist)
                 for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
                     self._p2g(state, s_in, s_out, keep, c, p)
         else:
@@ -88,6 +89,9 @@ class Solver:
                 self.grid_m[I] = 0.0
                 self.grid_mv[I] = ti.Vector.zero(float, 3)
             for p in range(self.n_particles):
+                if ti.static(host_twist):
+                    if p == 0:
+                        self._twists_from_host(state, s_in, twist)
                 self._p2g(state, s_in, s_out, keep, 0, p)
         # grid update
         for I in ti.grouped(self.grid_m):
@@ -102,12 +106,11 @@ class Solver:
             self.grid_v[I] = vn
             if ti.static(keep):
                 self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
-        # tools
-        ti.loop_config(serialize=True)
-        for k in range(self.model.n_tools):
-            self._advance_tool(state, s_in, s_out, k)
-        # G2P
+        # G2P (and the tools' advance: nothing reads their poses after the grid update)
         for p in range(self.n_particles):
+            if p == 0:
+                for k in ti.static(range(self.model.n_tools)):
+                    self._advance_tool(state, s_in, s_out, k)
             new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
             xp = state.x[s_in, p] + self.model.dt * new_v
             if ti.static(keep):
@@ -137,11 +140,19 @@ class Solver:
                              tau, p)
 
     @ti.func
+    def _twists_from_host(self, state: ti.template(), s, twist: ti.template()):
+        for k in ti.static(range(self.model.n_tools)):
+            state.tool_v[k, s] = ti.Vector([twist[k, i] for i in ti.static(range(3))])
+            state.tool_w[k, s] = ti.Vector([twist[k, 3 + i] for i in ti.static(range(3))])
+            state.sync_real(k, s)
+
+    @ti.func
     def _advance_tool(self, state: ti.template(), s_in, s_out, k):
         """Tool k's pose over the substep, in the precision of the state's tool fields."""
         dt = ti.cast(self.model.tool_dt[None], state.pose_real)
         state.tool_p[k, s_out], state.tool_R[k, s_out] = advance_pose(
             state.tool_p[k, s_in], state.tool_R[k, s_in], state.tool_v[k, s_in], state.tool_w[k, s_in], dt)
+        state.sync_real(k, s_out)
 
     @ti.func
     def _store_g2p(self, state: ti.template(), s_out, p, xp, vp, Cp):
@@ -155,12 +166,24 @@ class Solver:
 class FastSolver(Solver):
     """The forward solver: steps a one-slot StateBuffer in place (`Model.state()`), no gradients."""
 
+    @ti.kernel
+    def substep_kernel(self, state: ti.template(), twist: ti.types.ndarray()):
+        """One substep in place, with the tools' twists (n_tools, 6) from the host."""
+        self.mpm_substep(state, 0, 0, False, twist, True)
+
+    @ti.kernel
+    def substep_kernel_without_tools(self, state: ti.template()):
+        """One substep in place, in a scene without tools (no array argument to handle)."""
+        self.mpm_substep(state, 0, 0, False, 0, False)
+
     def step(self, state: StateBuffer, control: Control):
         """Advance `state` in place by one step (the model's substeps) with the tools' twists of `control`
         (already clipped to the workspaces: tools.plan)."""
-        twist = control.twists if self.model.n_tools else self._no_twist
         for _ in range(self.model.substeps):
-            self.forward_kernel(state, 0, 0, False, twist, self.model.n_tools > 0)
+            if self.model.n_tools:
+                self.substep_kernel(state, control.twists)
+            else:
+                self.substep_kernel_without_tools(state)
             if self.rigid is not None:
                 self.rigid.forward(state, 0)
 

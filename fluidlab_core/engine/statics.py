@@ -82,12 +82,18 @@ def _difference(outer, hollow):
 class MeshSDF:
     """A mesh static: its SDF grid in a Taichi field, read by trilinear interpolation."""
 
-    def __init__(self, grid, real):
+    def __init__(self, grid, real, uploads=None):
+        """uploads: a list to append (field, data) to, for an upload once everything is allocated (model.py);
+        None uploads now."""
         self.origin = tuple(float(v) for v in grid.origin)
         self.spacing = float(grid.spacing)
         self.shape = tuple(int(n) for n in grid.values.shape)
         self.values = ti.field(real, shape=self.shape)  # signed distance at the SDF grid's nodes (m)
-        self.values.from_numpy(grid.values.astype(np.float64 if real == ti.f64 else np.float32))
+        data = grid.values.astype(np.float64 if real == ti.f64 else np.float32)
+        if uploads is None:
+            self.values.from_numpy(data)
+        else:
+            uploads.append((self.values, data))
 
     def func(self):
         values, origin, inv_h, h, shape = self.values, self.origin, 1.0 / self.spacing, self.spacing, self.shape
@@ -109,8 +115,9 @@ class MeshSDF:
         return sdf
 
 
-def sdf_func(shape, real, mesh_spacing: float):
-    """A Taichi SDF function for a static shape (metres)."""
+def sdf_func(shape, real, mesh_spacing: float, uploads=None):
+    """A Taichi SDF function for a static shape (metres). A mesh's SDF grid goes into a field whose data is
+    appended to `uploads` (or uploaded now if None, see MeshSDF)."""
     if isinstance(shape, S.Box):
         return _box_sdf(shape.lower, shape.upper)
     if isinstance(shape, S.Sphere):
@@ -120,11 +127,11 @@ def sdf_func(shape, real, mesh_spacing: float):
     if isinstance(shape, (S.Cup, S.Tank)):
         outer = shape._outer() if isinstance(shape, S.Cup) else S.Box(shape.lower, shape.upper)
         hollow = shape._hollow()
-        return _difference(sdf_func(outer, real, mesh_spacing), sdf_func(hollow, real, mesh_spacing))
+        return _difference(sdf_func(outer, real, mesh_spacing, uploads), sdf_func(hollow, real, mesh_spacing, uploads))
     if isinstance(shape, S.Mesh):
         from fluidlab_core.shapes.mesh_sdf import mesh_sdf_grid
 
-        return MeshSDF(mesh_sdf_grid(shape.mesh(), mesh_spacing), real).func()
+        return MeshSDF(mesh_sdf_grid(shape.mesh(), mesh_spacing), real, uploads).func()
     raise TypeError(f"no static collider for shape type {type(shape).__name__}")
 
 

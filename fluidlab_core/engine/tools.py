@@ -52,9 +52,9 @@ class Tool:
     """The Taichi side of one tool: its SDF in its own frame and the contact law at a grid node (the pose is
     part of the State, state.py)."""
 
-    def __init__(self, spec: ToolSpec, real, dx: float):
+    def __init__(self, spec: ToolSpec, real, dx: float, uploads=None):
         self.spec = spec
-        self.sdf_local = statics.sdf_func(spec.shape, real, 0.5 * dx)
+        self.sdf_local = statics.sdf_func(spec.shape, real, 0.5 * dx, uploads)
         self.normal_local = statics.sdf_normal(self.sdf_local, 0.01 * dx)
         self.contact_at = self._make_contact()
 
