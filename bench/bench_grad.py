@@ -45,7 +45,7 @@ def timed(fn):  # the fastest of REPEAT runs (this machine's timings vary by +-1
         best = t if best is None else min(best, t)
     return best, out
 fwd, _ = timed(lambda: sim.rollout(actions, loss))
-dfwd, _ = timed(lambda: rollout_with_grad(sim, sim.diff, sim._action_sequence(actions), loss, grad=False))
+dfwd, _ = timed(lambda: rollout_with_grad(sim.diff, start, sim._action_sequence(actions), loss, grad=False))
 both, res = timed(lambda: sim.rollout(actions, loss, grad=True))
 print(json.dumps({"N": N, "particles": sim.n_particles, "forward_s": fwd, "diff_forward_s": dfwd, "fwd_bwd_s": both,
                   "segments": res.stats["segments"], "segment_steps": res.stats["segment_steps"],

@@ -7,6 +7,7 @@ quantity (relative to that quantity's largest magnitude).
 
     python bench/gradient_regression.py --save bench/results/gradients_reference.npz
     python bench/gradient_regression.py --compare bench/results/gradients_reference.npz [--tol 1e-10]
+                                        [--out bench/results/gradient_regression.txt]
 
 It uses only the public API (`Scene.build`, `Simulator.rollout`) and the scene, loss and actions of
 tests/test_gradients.py (`build_scene`, `build_problem`). Exit status 1 when a difference exceeds --tol.
@@ -46,6 +47,7 @@ def main():
     group.add_argument("--save", help="write the gradients to this .npz file")
     group.add_argument("--compare", help="compare with this .npz file")
     ap.add_argument("--tol", type=float, default=1e-10, help="largest relative difference allowed (default 1e-10)")
+    ap.add_argument("--out", default=None, help="with --compare: also write the comparison to this file")
     args = ap.parse_args()
     out = run()
     if args.save:
@@ -54,12 +56,16 @@ def main():
         return 0
     ref = np.load(args.compare)
     worst = 0.0
+    lines = [f"gradients of tests/test_gradients.py's scene (float64, CPU, 2 threads) against {args.compare}"]
     for k in KEYS:
         scale = max(np.abs(ref[k]).max(), 1e-300)
         diff = float(np.abs(out[k] - ref[k]).max() / scale)
         worst = max(worst, diff)
-        print(f"{k:<20} max |new - reference| / max |reference| = {diff:.3e}")
-    print(f"largest relative difference {worst:.3e} (tolerance {args.tol:g})")
+        lines.append(f"{k:<20} max |new - reference| / max |reference| = {diff:.3e}")
+    lines.append(f"largest relative difference {worst:.3e} (tolerance {args.tol:g})")
+    print("\n".join(lines))
+    if args.out:
+        Path(args.out).write_text("\n".join(lines) + "\n")
     return 0 if worst <= args.tol else 1
 
 
