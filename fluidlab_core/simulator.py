@@ -122,8 +122,10 @@ class Simulator:
             if terms or step_offset or horizon is not None:
                 raise ValueError("rollout(grad=True) takes one loss over the rollout's own steps (no terms, "
                                  "step_offset or horizon)")
-            result, final = rollout_with_grad(self.diff, self.get_state(), twists, loss, True, segment_steps,
-                                              checkpoint_dir, progress, on_nonfinite=self._raise_nonfinite)
+            start = self.step_count
+            result, final = rollout_with_grad(
+                self.diff, self.get_state(), twists, loss, True, segment_steps, checkpoint_dir, progress,
+                on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step))
             self.set_state(final)
             return result
         clipped, values = self._run(twists, {"loss": loss, **(terms or {})}, progress, step_offset, horizon)

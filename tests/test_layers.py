@@ -39,7 +39,8 @@ def _core_files():
 
 
 def test_core_never_imports_the_ros_side():
-    offenders = {str(f.relative_to(ROOT)): sorted(m for m in _imports(f) if m.split(".")[0] in ("fluidlab_ros", "rclpy"))
+    ros_side = ("fluidlab_ros", "rclpy")
+    offenders = {str(f.relative_to(ROOT)): sorted(m for m in _imports(f) if m.split(".")[0] in ros_side)
                  for f in _core_files()}
     offenders = {f: m for f, m in offenders.items() if m}
     assert not offenders, f"fluidlab_core imports the ROS side: {offenders}"

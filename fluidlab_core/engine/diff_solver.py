@@ -217,8 +217,9 @@ class DiffSolver(Solver):
         """Backward of P2G (transfer.p2g_backward) with the stored stress; F of slot s + 1 is F_model (without
         rigid bodies)."""
         for p in range(self.n_particles):
-            gx, gv, gC, gtau = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad, self.state.x[s, p],
-                                                     self.state.v[s, p], self.state.C[s, p], self.store_tau[s, p], p)
+            gx, gv, gC, gtau = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad,
+                                                     self.state.x[s, p], self.state.v[s, p], self.state.C[s, p],
+                                                     self.store_tau[s, p], p)
             # one thread per particle: plain read-modify-write (Taichi makes `+=` on a field an atomic add)
             self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx
             self.state.v.grad[s, p] = self.state.v.grad[s, p] + gv
@@ -292,8 +293,8 @@ class DiffSolver(Solver):
             self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
         self.x_pre.grad[p] = ti.Vector.zero(float, 3)  # read once: zero for the next substep's projection
         self.v_pre.grad[p] = ti.Vector.zero(float, 3)
-        gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private, self.state.x[s, p],
-                                      self.store_v_pre[s, p], gx, gv, gC)
+        gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private,
+                                      self.state.x[s, p], self.store_v_pre[s, p], gx, gv, gC)
         # one thread per particle: a plain read-modify-write (`+=` on a field is an atomic add)
         self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx + gf
 

@@ -90,7 +90,8 @@ class State:
         for key, want in (("tool_position", (n_tools, 3)), ("tool_rotation", (n_tools, 3, 3))):
             arr = np.asarray(getattr(self, key))
             if arr.shape != want:
-                raise ValueError(f"state.{key} has shape {arr.shape}, this scene has {n_tools} tool(s): expected {want}")
+                raise ValueError(f"state.{key} has shape {arr.shape}, this scene has {n_tools} tool(s): expected "
+                                 f"{want}")
 
 
 @ti.data_oriented

@@ -35,8 +35,8 @@ def test_sim_node_optimises_lists_and_plans_a_task_of_our_own(ros_env, client, t
         assert [t.name for t in listed.trajectories] == ["toy_opt"]
         # a dry run plans the execution through IK with the task's own tool offset, and sends nothing
         ex = client.action(Execute, "/sim_node/execute")
-        accepted, status, res = client.run_goal(ex, Execute.Goal(trajectory_name="toy_opt", target="twin", speed_scale=1.0,
-                                                                 dry_run=True), timeout=120)
+        goal = Execute.Goal(trajectory_name="toy_opt", target="twin", speed_scale=1.0, dry_run=True)
+        accepted, status, res = client.run_goal(ex, goal, timeout=120)
         assert accepted and status == GoalStatus.STATUS_SUCCEEDED, (res.message, node.text())
     finally:
         assert node.stop() == 0, node.text()
