@@ -5,7 +5,7 @@
     fluidlab bench [--particles N ...]
     fluidlab list
     fluidlab optimise TASK [--method dp|dp-h|cma-es] [--budget STEPS] [--seed S] [--size small|paper]
-                           [--name NAME] [--root trajectories]
+                           [--name NAME] [--root out/trajectories] [--force]
     fluidlab evaluate TRAJECTORY.json
     fluidlab render TRAJECTORY.json [--out DIR] [--every N] [--no-mp4]
     fluidlab replay RECORDING [--out DIR] [--disturb delay=S,scale=F,noise=RAD] [--recover]   (from fluidlab_ros)
@@ -18,6 +18,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+
+from fluidlab_core.files import write_atomic
+
+DEFAULT_ROOT = "out/trajectories"
 
 
 def _add_backend(parser, precision="f32"):
@@ -46,6 +50,16 @@ class _Bar:
             print(file=sys.stderr)
 
 
+def _compile_notice(phase: str, what: str, seconds: float):
+    """runtime.on_compile listener: a line before and after a first run that compiles kernels."""
+    clear = "\r\033[K" if sys.stderr.isatty() else ""
+    if phase == "start":
+        print(f"{clear}compiling {what} on the first run (a minute or more on two cores; Taichi caches the "
+              f"result in ~/.cache/taichi, so later runs start in seconds) ...", file=sys.stderr, flush=True)
+    else:
+        print(f"{clear}{what}: compiled, first run took {seconds:.1f} s", file=sys.stderr, flush=True)
+
+
 def _cmd_list(args):
     from fluidlab_core import tasks
 
@@ -59,25 +73,51 @@ def _cmd_list(args):
     return 0
 
 
+def _trajectory_root(root: str):
+    """The folder `fluidlab optimise` writes into, refused when it lies inside the installed packages (their
+    folders are replaced on the next install, and a package is no place for a user's results)."""
+    from pathlib import Path
+
+    import fluidlab_core
+
+    folder = Path(root).expanduser().resolve()
+    package_dirs = [Path(fluidlab_core.__file__).resolve().parent]
+    try:
+        import robot_models
+
+        package_dirs.append(Path(robot_models.__file__).resolve().parent)
+    except ImportError:
+        pass
+    for pkg in package_dirs:
+        if folder == pkg or pkg in folder.parents:
+            raise ValueError(f"--root {root} is inside the installed package {pkg}; write trajectories to a folder "
+                             f"of your own (default {DEFAULT_ROOT})")
+    return folder
+
+
 def _cmd_optimise(args):
     import json
 
     import fluidlab_core
     from fluidlab_core import optim, tasks
-    from fluidlab_core.trajectory import check_name, path_for
+    from fluidlab_core.trajectory_store import TrajectoryStore
 
+    # everything that can be refused is refused before anything is announced or computed
     task = tasks.make(args.task, size=args.size)
-    name = check_name(args.name or f"{task.name}_{args.method}_seed{args.seed}_{args.size}")
     budget = args.budget if args.budget is not None else 12 * task.horizon
+    optim.check_request(task, args.method, budget, args.seed)
+    store = TrajectoryStore(_trajectory_root(args.root))
+    name = args.name or f"{task.name}_{args.method}_seed{args.seed}_{args.size}"
+    path = store.new_path(task.name, name, overwrite=args.force)
     fluidlab_core.init(arch=args.arch, precision=args.precision)
-    print(f"optimising {task.name} ({args.size}) with {args.method}, budget {budget} simulated steps, seed "
-          f"{args.seed}; the first iteration compiles the simulator (minutes when the cache is cold)",
-          file=sys.stderr)
+    print(f"optimising {task.name} ({args.size}) with {args.method}, budget {budget} simulated steps "
+          f"({budget / task.horizon:.3g} rollouts of {task.horizon} steps), seed {args.seed}; the trajectory will "
+          f"be written to {path}" + (" (replacing the file there)" if path.exists() else ""), file=sys.stderr)
     bar = _Bar(budget)
     traj = optim.optimise(task, args.method, budget, seed=args.seed,
                           callback=lambda p: bar.update(p.steps, p.line()))
     bar.close()
-    path = traj.save(path_for(args.root, task.name, name))
+    path = traj.save(path)
     report = {"task": task.name, "size": args.size, "method": args.method, "seed": args.seed, "trajectory": str(path),
               **{k: traj.metadata[k] for k in ("final_loss", "return", "budget_steps", "steps_used", "iterations",
                                                "seconds")},
@@ -85,9 +125,7 @@ def _cmd_optimise(args):
               "loss_best": min(traj.loss_history) if traj.loss_history else None,
               "precision": args.precision, "arch": args.arch}
     report_path = path.with_name(path.stem + ".report.json")
-    tmp = report_path.with_name("." + report_path.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(report_path)
+    write_atomic(report_path, json.dumps(report, indent=1).encode())
     print(f"final loss {report['final_loss']:.6g} (reference physics), return {report['return']:.4g}")
     print(f"wrote {path} and {report_path}")
     return 0
@@ -180,7 +218,8 @@ def _register_plugins(sub):
         register(sub, _add_backend)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The `fluidlab` argument parser, plug-in sub-commands included (tests parse documented commands with it)."""
     parser = argparse.ArgumentParser(prog="fluidlab", description="FluidLab-ROS: differentiable fluid simulation "
                                      "for robot trajectories")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -208,14 +247,24 @@ def main(argv=None) -> int:
     p = sub.add_parser("list", help="list the tasks and their sizes")
     p.set_defaults(func=_cmd_list)
 
-    p = sub.add_parser("optimise", aliases=["optimize"], help="optimise a task's trajectory and save it")
+    from fluidlab_core.optim import DESCRIPTIONS, METHODS
+
+    p = sub.add_parser("optimise", aliases=["optimize"], help="optimise a task's trajectory and save it",
+                       description="Optimise a task's tool trajectory and save it as TASK/NAME.json under --root, "
+                                   "with NAME.report.json beside it. Methods: " + "; ".join(
+                                       f"{m}: {DESCRIPTIONS[m]}" for m in METHODS) + ".")
     p.add_argument("task", help="task name (fluidlab list)")
-    p.add_argument("--method", default="dp", choices=["dp", "dp-h", "cma-es"])
-    p.add_argument("--budget", type=int, default=None, help="simulated steps (default 12 rollouts of the horizon)")
+    p.add_argument("--method", default="dp", choices=METHODS, help="dp (default), dp-h or cma-es (see above)")
+    p.add_argument("--budget", type=int, default=None,
+                   help="simulated steps; a rollout of the horizon costs the horizon (default 12 rollouts)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", default="small", choices=["small", "paper"])
-    p.add_argument("--name", default=None, help="trajectory name (default TASK_METHOD_seedS_SIZE; unique across the folder, as sim_node names trajectories by it)")
-    p.add_argument("--root", default="trajectories", help="folder of trajectories (default ./trajectories)")
+    p.add_argument("--name", default=None, help="trajectory name (default TASK_METHOD_seedS_SIZE); a name in use "
+                   "anywhere under --root is refused (sim_node finds trajectories by name)")
+    p.add_argument("--root", default=DEFAULT_ROOT,
+                   help=f"folder of trajectories (default ./{DEFAULT_ROOT}; the repository's shipped trajectories/ "
+                        f"only when you name it)")
+    p.add_argument("--force", action="store_true", help="replace a trajectory of the same task and name")
     _add_backend(p)
     p.set_defaults(func=_cmd_optimise)
 
@@ -235,12 +284,20 @@ def main(argv=None) -> int:
     p.set_defaults(func=_cmd_render)
 
     _register_plugins(sub)
+    return parser
 
-    args = parser.parse_args(argv)
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from fluidlab_core import runtime
+
+    runtime.on_compile(_compile_notice)
     try:
         return args.func(args)
     except (ValueError, KeyError, OSError, ImportError) as err:
-        print(f"fluidlab: error: {err}", file=sys.stderr)
+        # a KeyError's str() is the repr of its message (quoted); print the message itself
+        text = err.args[0] if isinstance(err, KeyError) and err.args and isinstance(err.args[0], str) else err
+        print(f"fluidlab: error: {text}", file=sys.stderr)
         return 2
 
 

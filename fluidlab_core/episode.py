@@ -5,10 +5,11 @@ browsers and players open it); frames are written first, the video to a temporar
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
+
+from fluidlab_core.files import atomic_path
 
 
 def task_for(traj, size: str | None = None):
@@ -59,15 +60,13 @@ def write_mp4(images, path, fps: int = 10) -> str:
     path = Path(path)
     h, w = images[0].shape[:2]
     h2, w2 = h - h % 2, w - w % 2  # yuv420p needs even sizes
-    tmp = path.with_name(f".{path.name}.tmp.mp4")
-    writer = imageio_ffmpeg.write_frames(str(tmp), (w2, h2), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
-                                         macro_block_size=1, ffmpeg_log_level="error")
-    writer.send(None)
-    try:
-        for img in images:
-            writer.send(np.ascontiguousarray(img[:h2, :w2, :3]))
-    finally:
-        writer.close()
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (w2, h2), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                             macro_block_size=1, ffmpeg_log_level="error")
+        writer.send(None)
+        try:
+            for img in images:
+                writer.send(np.ascontiguousarray(img[:h2, :w2, :3]))
+        finally:
+            writer.close()
     return str(path)

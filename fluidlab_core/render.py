@@ -47,10 +47,8 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
@@ -320,17 +318,10 @@ def _draw_legend(draw: ImageDraw.ImageDraw, layers: list[Layer], size: tuple[int
 
 def _write_png_atomic(image: Image.Image, path: str | os.PathLike) -> None:
     """Write to a temporary file in the target folder, then rename it over `path` (readers never see half a PNG)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            image.save(f, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from fluidlab_core.files import atomic_path
+
+    with atomic_path(path) as tmp:
+        image.save(tmp, format="PNG")
 
 
 def render(

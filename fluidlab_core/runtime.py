@@ -8,7 +8,10 @@ Taichi: simulators built before the reset are invalid and raise `RuntimeError` w
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import time
 from dataclasses import dataclass
 
 ARCHES = ("auto", "cpu", "cuda")
@@ -116,3 +119,31 @@ def scatter_copies() -> int:
     if os.environ.get("FLUIDLAB_SCATTER_COPIES"):
         return int(os.environ["FLUIDLAB_SCATTER_COPIES"])
     return cfg.cpu_threads or os.cpu_count() or 1
+
+
+# --- compilation notices -------------------------------------------------------------------------------
+# Taichi compiles a kernel the first time it runs, so a simulator's first step (and its first gradient
+# rollout) can take a minute on two cores while later ones take milliseconds. Whoever shows progress hears
+# of it: the `fluidlab` command prints a line before and after, sim_node's fluid worker tells the node.
+_compile_listener = None
+_log = logging.getLogger("fluidlab_core")
+
+
+def on_compile(listener):
+    """Set the process-wide listener(phase, what, seconds) told when a first run compiles kernels: phase
+    "start" (seconds 0) and "done" (seconds the first run took, compilation included). None restores the
+    default, a logging message on the "fluidlab_core" logger. Returns the previous listener."""
+    global _compile_listener
+    previous, _compile_listener = _compile_listener, listener
+    return previous
+
+
+@contextlib.contextmanager
+def compiling(what: str):
+    """Wrap a first run that compiles `what` (e.g. "the simulator's kernels"), telling the listener."""
+    listener = _compile_listener or (lambda phase, name, seconds: _log.info(
+        "compiling %s ..." % name if phase == "start" else "%s compiled and ran in %.1f s" % (name, seconds)))
+    listener("start", what, 0.0)
+    t0 = time.perf_counter()
+    yield
+    listener("done", what, time.perf_counter() - t0)

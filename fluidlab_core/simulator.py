@@ -8,6 +8,8 @@ the same state, and both end in the rollout's final state.
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from fluidlab_core import runtime
@@ -39,6 +41,7 @@ class Simulator:
         self.check_finite_every = 1  # steps between NaN checks (0: never)
         self._static_points = None  # sampled statics for pictures, made on first render
         self._tool_points = None  # tool shapes sampled in their own frames, likewise
+        self._compiled = set()  # which solvers have run (their first run compiles their kernels)
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -123,9 +126,10 @@ class Simulator:
                 raise ValueError("rollout(grad=True) takes one loss over the rollout's own steps (no terms, "
                                  "step_offset or horizon)")
             start = self.step_count
-            result, final = rollout_with_grad(
-                self.diff, self.get_state(), twists, loss, True, segment_steps, checkpoint_dir, progress,
-                on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step))
+            with self._first_run("grad", "the differentiable solver's kernels (forward and backward)"):
+                result, final = rollout_with_grad(
+                    self.diff, self.get_state(), twists, loss, True, segment_steps, checkpoint_dir, progress,
+                    on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step))
             self.set_state(final)
             return result
         clipped, values = self._run(twists, {"loss": loss, **(terms or {})}, progress, step_offset, horizon)
@@ -145,8 +149,16 @@ class Simulator:
             if progress:
                 progress(phase, done, total)
 
-        values, _ = loop.run(stepper, applied, losses, step_offset=step_offset, horizon=horizon, progress=tick)
+        with self._first_run("fast", "the simulator's kernels"):
+            values, _ = loop.run(stepper, applied, losses, step_offset=step_offset, horizon=horizon, progress=tick)
         return clipped, values
+
+    def _first_run(self, solver: str, what: str):
+        """runtime.compiling around a solver's first run (which compiles its kernels), nothing afterwards."""
+        if solver in self._compiled:
+            return contextlib.nullcontext()
+        self._compiled.add(solver)
+        return runtime.compiling(what)
 
     def _action_sequence(self, actions) -> np.ndarray:
         """(N, n_tools, 6) masked twists from the forms `rollout` accepts."""

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
-import tempfile
 import threading
 import time
 
 import numpy as np
+
+from fluidlab_core.files import atomic_path
 
 
 def wait_quiet(received: list, quiet: float = 0.5):
@@ -95,10 +95,8 @@ def main(argv=None):
     limits = JointLimits.load(args.robot)
     t = np.array(times)
     c = np.array(data, dtype=float) if data else np.zeros((0, limits.dof))
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(args.out)) or ".", suffix=".npz")
-    os.close(fd)
-    np.savez(tmp, times=t, commands=c)
-    os.replace(tmp, args.out)
+    with atomic_path(args.out, suffix=".npz") as tmp:
+        np.savez(tmp, times=t, commands=c)
     print(json.dumps(stream_stats(t, c, args.rate, limits)), flush=True)
     return 0
 

@@ -16,7 +16,7 @@ from fluidlab_ros.limits import JointLimits
 from fluidlab_ros.pipeline import plan
 from fluidlab_ros.robot import READY_Q
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.store import StoreError, TrajectoryStore
+from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
 from fluidlab_ros.verify import verify
 

@@ -37,17 +37,20 @@ def build_scene(size: str = "small", seed: int = 0) -> Scene:
 
 
 def run(out_dir: str | Path = "out/demo", size: str = "small", duration: float = 1.0, frames: int = 10,
-        view: str = "iso", seed: int = 0, log=print) -> list[Path]:
+        view: str = "iso", seed: int = 0, log=None) -> list[Path]:
     """Simulate `duration` seconds and write `frames` + 1 PNG pictures to out_dir; returns their paths."""
     if duration <= 0 or frames < 1:
         raise ValueError("duration must be positive and frames at least 1")
+    log = log or (lambda text: print(text, flush=True))
     out = Path(out_dir)
     scene = build_scene(size, seed)
     log(f"building the demo scene ({size}: grid {scene.grid_res}, dx = {scene.dx * 1000:.1f} mm, "
         f"{scene.substeps} substeps per {scene.dt * 1000:.0f} ms step) ...")
     t0 = time.perf_counter()
     sim = scene.build()
-    log(f"{sim.n_particles} particles; compiled in {time.perf_counter() - t0:.1f} s")
+    log(f"{sim.n_particles} particles, fields allocated in {time.perf_counter() - t0:.1f} s; the first step "
+        f"compiles the solver's kernels (about a minute on two cores the first time, seconds once Taichi has "
+        f"cached them)")
     steps = max(1, round(duration / scene.dt))
     every = max(1, steps // frames)
     def picture():

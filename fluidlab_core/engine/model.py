@@ -138,8 +138,8 @@ class Model:
 
     def upload(self):
         """Put the Model's data into its fields (once, after the solvers and states are allocated)."""
-        for field, data in self._uploads:
-            field.from_numpy(data)
+        for target, data in self._uploads:
+            target.from_numpy(data)
         self._uploads = []
 
     @property

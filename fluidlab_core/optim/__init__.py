@@ -17,6 +17,24 @@ import numpy as np
 from fluidlab_core.optim.progress import Progress, Result
 
 METHODS = ("dp", "dp-h", "cma-es")
+DESCRIPTIONS = {
+    "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
+          "a temporally expanding loss region and an attraction that lets untouched fluid feel the tool",
+    "dp-h": "the same gradient descent on the hard-contact physics without those techniques (the paper's DP-H)",
+    "cma-es": "CMA-ES (the cma package), gradient-free, one rollout per sample, no backward pass",
+}
+
+
+def check_request(task, method: str, budget, seed):
+    """Refuse an optimisation request before any work starts: unknown method, a budget under one rollout of the
+    horizon, a negative seed (each with the reason)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
+    if not isinstance(budget, (int, np.integer)) or isinstance(budget, bool) or budget < task.horizon:
+        raise ValueError(f"budget must be a whole number of simulated steps of at least one rollout "
+                         f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
 
 
 def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_iterations: int | None = None,
@@ -27,13 +45,7 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
 
     if isinstance(task, str):
         task = tasks.make(task, size=size)
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
-    if not isinstance(budget, (int, np.integer)) or budget < task.horizon:
-        raise ValueError(f"budget must be a whole number of simulated steps of at least one rollout "
-                         f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    check_request(task, method, budget, seed)
     if method == "cma-es":
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
     else:
@@ -49,4 +61,4 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            loss_history=result.history, metadata=meta)
 
 
-__all__ = ["optimise", "METHODS", "Progress", "Result"]
+__all__ = ["optimise", "check_request", "METHODS", "DESCRIPTIONS", "Progress", "Result"]

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -322,19 +321,13 @@ def _read_cache(path: Path, shape) -> np.ndarray | None:
 
 def _write_cache(path: Path, values: np.ndarray) -> None:
     """Write ``values`` to ``path`` atomically; warn (do not fail) if the folder is not writable."""
-    tmp_name = None
+    from fluidlab_core.files import atomic_path
+
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.stem, suffix=".tmp", delete=False) as f:
-            tmp_name = f.name
-            np.savez(f, format=np.array(CACHE_FORMAT), values=values)
-        os.replace(tmp_name, path)
-        tmp_name = None
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, format=np.array(CACHE_FORMAT), values=values)
     except OSError as exc:
         warnings.warn(f"could not write SDF cache {path} ({exc})", RuntimeWarning, stacklevel=3)
-    finally:
-        if tmp_name is not None and os.path.exists(tmp_name):
-            os.remove(tmp_name)
 
 
 # --------------------------------------------------------------------------------------------

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from fluidlab_core.files import atomic_path
 
 FORMAT = "fluidlab-goal"
 VERSION = 1
@@ -41,16 +41,9 @@ def save(path, task: str, size: str, steps, points, script: dict) -> Path:
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 3 or points.shape[0] != len(steps) or points.shape[2] != 3:
         raise GoalFileError(f"points must have shape (K, M, 3) with K = {len(steps)} steps, got {points.shape}")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, format=np.array(FORMAT), version=np.array(VERSION), task=np.array(task),
                             size=np.array(size), steps=steps, points=points, script=np.array(json.dumps(script)))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

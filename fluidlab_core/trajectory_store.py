@@ -1,4 +1,4 @@
-"""The node's trajectory folder: names, listing, lookup and saving.
+"""A folder of trajectories: names, listing, lookup and where a new one goes (the `fluidlab` CLI and sim_node).
 
 Layout (the same as the `fluidlab` CLI writes and trajectories/ ships): <folder>/<Task>/<name>.json, with an
 optional <name>.report.json and <name>.mp4 beside it. A trajectory's *name* is its file name without
@@ -96,14 +96,18 @@ class TrajectoryStore:
                 problems.append(f"{path}: {err}")
         return infos, problems
 
-    def new_path(self, task: str, name: str) -> Path:
-        """Where a new trajectory `name` of `task` goes; refuses names already used anywhere in the folder."""
+    def new_path(self, task: str, name: str, overwrite: bool = False) -> Path:
+        """Where a new trajectory `name` of `task` goes. Refuses a name already used anywhere in the folder;
+        with `overwrite`, the file of the same task and name may be replaced, but a name used by another task's
+        file is still refused (the name would then be ambiguous)."""
         try:
             check_name(name)
             check_name(task, "task name")
         except TrajectoryError as err:
             raise StoreError(str(err)) from None
-        taken = [p for p in self._files() if p.stem == name]
+        path = self.folder / task / f"{name}.json"
+        taken = [p for p in self._files() if p.stem == name and not (overwrite and p == path)]
         if taken:
-            raise StoreError(f"a trajectory named {name!r} exists already ({taken[0]}); choose another name")
-        return self.folder / task / f"{name}.json"
+            hint = "choose another name" + ("" if overwrite or taken[0] != path else ", or overwrite it (--force)")
+            raise StoreError(f"a trajectory named {name!r} exists already ({taken[0]}); {hint}")
+        return path
