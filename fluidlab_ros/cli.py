@@ -51,5 +51,7 @@ def run_replay(args) -> int:
           f"{rep['loss_replayed']:.6g} (gap {100 * (rep['loss_gap_relative'] or 0):+.2f} %); tool path error "
           f"max {rep['tool_path_error_task_max'] * 1e3:.3g} mm in the task segment; final particles moved "
           f"{rep['final_particle_displacement_mean'] * 1e3:.3g} mm on average")
+    for note in rep.get("notes", []):
+        print(f"note: {note}")
     print(f"wrote {out}/report.json and plots")
     return 0

@@ -11,7 +11,11 @@ A recording is a rosbag2 folder `<recordings>/<UTC time>_<trajectory>/` holding 
     /sim_node/planned_joint_states sensor_msgs/msg/JointState       the plan's joint positions, every 5th command
     /sim_node/planned_tool_pose    geometry_msgs/msg/PoseStamped    the plan's tool pose, every 5th command
     /sim_node/tool_pose            geometry_msgs/msg/PoseStamped    the measured arm's tool pose, every 5th
-    /sim_node/particles            sensor_msgs/msg/PointCloud2      the twin's fluid, at most MAX_POINTS points
+    /sim_node/particles            sensor_msgs/msg/PointCloud2      the twin's fluid, at most MAX_POINTS points,
+                                                                    stamped with the time the arm was where the
+                                                                    fluid's tool is (the worker may run behind);
+                                                                    from the start to the end of the motion: the
+                                                                    bag closes after the fluid's final state
     /fluidlab/metadata             std_msgs/msg/String              one JSON document, first message
 
 The metadata (a summary without the arrays also in metadata.yaml's custom_data, key "fluidlab") holds: trajectory name, its SHA-256 and
@@ -231,6 +235,9 @@ def read_recording(path) -> Recording:
         raise
     except Exception as err:  # noqa: BLE001 - corrupt CDR or MCAP
         raise RecordingError(f"{path}: corrupt recording ({type(err).__name__}: {err})") from None
+    # in stamp order: the twin's fluid is written when the worker computed it, stamped when the arm was there
+    for items in series.values():
+        items.sort(key=lambda item: item[0])
     if meta is None:
         raise RecordingError(f"{path} has no {METADATA_TOPIC} message: not a FluidLab recording, or truncated "
                              f"before anything was written")

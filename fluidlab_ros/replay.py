@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from fluidlab_core.files import write_atomic
 from fluidlab_ros.recording import RecordingError, read_recording
 
 
@@ -178,14 +179,35 @@ def replay(path, out_dir, disturbance: dict | str | None = None, progress=None, 
         "joint_error_max": float(joint_err.max()), "final_particle_displacement_mean": float(dx.mean()),
         "final_particle_displacement_max": float(dx.max()), "seconds": round(time.perf_counter() - t_begin, 2),
         "counts": rec.counts,
+        "fluid_clouds_recorded": len(rec.particles),
+        "fluid_recorded_until": float(rec.particles[-1][0]) if rec.particles else None,
     }
+    report["notes"] = report_notes(report)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     _plots(out, tc, q_m[common], q_plan_c, pose_m[common], p_plan_c, path_err, results, traj.dt, meta, report)
-    tmp = out / ".report.json.tmp"
-    tmp.write_text(json.dumps(report, indent=1, default=float))
-    tmp.replace(out / "report.json")
+    write_atomic(out / "report.json", json.dumps(report, indent=1, default=float))
     return report
+
+
+def report_notes(report: dict) -> list[str]:
+    """What a reader of the report must know to read its numbers: how the executed timing relates to the
+    optimised one (and what that does to the loss), and whether the recording holds the twin's fluid."""
+    notes = []
+    ts, lo, lp = report.get("time_scale"), report.get("loss_optimised"), report.get("loss_planned")
+    if ts and abs(ts - 1.0) > 0.01:
+        text = (f"the execution ran {ts:.3g}x {'slower' if ts > 1 else 'faster'} than the optimised trajectory "
+                f"(time_scale: the arm's velocity, acceleration and jerk limits), so the fluid had {ts:.3g}x as long "
+                f"to respond to each tool motion")
+        if lo is not None and lp is not None and lo != 0:
+            text += (f"; this timing, with the jerk-limited rounding of the trajectory's corners, moves the task loss "
+                     f"from the optimised {lo:.4g} to the planned {lp:.4g} ({100 * (lp - lo) / abs(lo):+.0f} %)")
+        notes.append(text + ". Judge the execution by loss_replayed against loss_planned (the same timing), "
+                            "not against loss_optimised.")
+    if not report.get("fluid_clouds_recorded"):
+        notes.append("the recording holds no particle cloud of the twin's fluid (fluid_twin off, or the twin did "
+                     "not run); the replay simulated the fluid from the recorded motion alone")
+    return notes
 
 
 def _plots(out: Path, t, q_meas, q_plan, pose_meas, p_plan, path_err, results, traj_dt, meta, report):

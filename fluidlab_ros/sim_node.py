@@ -78,13 +78,54 @@ from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.pipeline import command_budgets
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.store import StoreError, TrajectoryStore
+from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
 from fluidlab_ros import workers
 
 MODES = ("twin", "robot")
 STATE_EVERY = 5  # a recording holds every command, and the arm states and tool poses of every 5th
 TARGETS = ("twin", "robot")
+
+
+# The node's parameters: name -> (default, what it sets). SimNode declares them from here and `sim_node --help`
+# prints them (docs/ros.md has the same table with more words).
+PARAMETERS = {
+    "robot_model": ("fr3", "fr3 or panda (robot_models/)"),
+    "mode": ("twin", "twin: no hardware; robot: command the real arm (after ~/arm)"),
+    "control_rate": (500.0, "Hz of the command stream; must divide 1 kHz"),
+    "command_topic": ("/fluidlab_velocity_controller/commands", "the JointGroupVelocityController's command topic"),
+    "controller_joint_names": ([""], "the controller's joint order (default: the robot's)"),
+    "joint_state_topic": ("/franka/joint_states", "measured joint states (robot mode)"),
+    "joint_state_qos": ("best_effort", "best_effort or reliable"),
+    "joint_state_timeout": (0.1, "s without a joint state before the motion stops (robot mode)"),
+    "late_tick_limit": (0.02, "s: a control tick later than this stops the motion"),
+    "trajectory_folder": ("trajectories", "folder of trajectories (<folder>/<Task>/<name>.json)"),
+    "margin": (0.8, "fraction of every official limit a plan may use"),
+    "max_path_error": (0.005, "m: refuse a plan whose executed tool path leaves the trajectory's by more"),
+    "max_orientation_error": (0.05, "rad: the same for the tool's orientation"),
+    "fluid_twin": (True, "simulate the task's fluid with the executed tool motion"),
+    "fluid_record_timeout": (180.0, "s an execution's result waits for the fluid twin to reach the end of the "
+                                    "motion, so that its recording holds the whole execution"),
+    "arch": ("cpu", "Taichi backend of the worker processes (cpu, cuda, auto)"),
+    "precision": ("f32", "f32 or f64 in the worker processes"),
+    "state_publish_rate": (50.0, "Hz of the twin joint states and tool pose"),
+    "twin_initial_positions": (READY_Q.tolist(), "the twin arm's joint positions at start (rad)"),
+    "cancel_timeout": (0.5, "s an optimiser gets to stop after a cancel before it is terminated"),
+    "realtime_priority": (10, "SCHED_FIFO priority of the command-stream thread (0: normal scheduling)"),
+    "feedback_gain": (2.0, "1/s: position feedback on the verified profile (0: off)"),
+    "feedback_max_velocity": (0.05, "rad/s: the largest feedback correction"),
+    "record": (True, "record every execution as rosbag2 MCAP (docs/replay.md)"),
+    "recording_folder": ("recordings", "where recordings go"),
+}
+
+
+def parameters_help() -> str:
+    """The parameter table for `sim_node --help`."""
+    width = max(map(len, PARAMETERS))
+    lines = ["Parameters (--ros-args -p name:=value; defaults in brackets):"]
+    for name, (default, what) in PARAMETERS.items():
+        lines.append(f"  {name:<{width}}  {what} [{default}]")
+    return "\n".join(lines)
 
 
 @dataclass
@@ -108,38 +149,47 @@ class Stream:
     fk: object = None  # a Robot with the task's tool frame for the stream thread (pinocchio data is per thread)
     metadata: dict | None = None  # the recording's metadata; the stream thread adds the start time
     recorded: int = 0  # commands recorded
+    start_ns: int = 0  # wall-clock time of command 0 (ns)
+    fluid_epoch: int = -1  # the fluid twin's epoch of this execution (its reset); -1: no fluid twin
+    fluid_final: threading.Event = field(default_factory=threading.Event)  # the fluid's final state arrived
+    fluid_clouds: int = 0  # particle clouds recorded
+    fluid_pending: list = field(default_factory=list)  # clouds that came before the recording's metadata
 
 
 class SimNode(Node):
     def __init__(self, **kwargs):
         super().__init__("sim_node", **kwargs)
-        p = self.declare_parameter
-        self.robot_model = p("robot_model", "fr3").value
-        self.mode = p("mode", "twin").value
-        self.control_rate = float(p("control_rate", 500.0).value)
-        self.command_topic = p("command_topic", "/fluidlab_velocity_controller/commands").value
-        controller_joints = list(p("controller_joint_names", [""]).value)
-        self.joint_state_topic = p("joint_state_topic", "/franka/joint_states").value
-        js_qos = p("joint_state_qos", "best_effort").value
-        self.joint_state_timeout = float(p("joint_state_timeout", 0.1).value)
-        self.late_tick_limit = float(p("late_tick_limit", 0.02).value)
-        folder = p("trajectory_folder", "trajectories").value
-        self.margin = float(p("margin", 0.8).value)
+        def p(name):
+            return self.declare_parameter(name, PARAMETERS[name][0])
+        self.robot_model = p("robot_model").value
+        self.mode = p("mode").value
+        self.control_rate = float(p("control_rate").value)
+        self.command_topic = p("command_topic").value
+        controller_joints = list(p("controller_joint_names").value)
+        self.joint_state_topic = p("joint_state_topic").value
+        js_qos = p("joint_state_qos").value
+        self.joint_state_timeout = float(p("joint_state_timeout").value)
+        self.late_tick_limit = float(p("late_tick_limit").value)
+        folder = p("trajectory_folder").value
+        self.margin = float(p("margin").value)
         # optimised trajectories change the tool velocity at every task step (corners every few ms) that a
         # jerk-limited arm rounds off; the shipped ones leave their path by 1.5-3.7 mm (docs/ros.md)
-        self.max_path_error = float(p("max_path_error", 0.005).value)
-        self.max_orientation_error = float(p("max_orientation_error", 0.05).value)
-        self.fluid_twin = bool(p("fluid_twin", True).value)
-        self.arch = p("arch", "cpu").value
-        self.precision = p("precision", "f32").value
-        state_rate = float(p("state_publish_rate", 50.0).value)
-        q_init = list(p("twin_initial_positions", READY_Q.tolist()).value)
-        self.cancel_timeout = float(p("cancel_timeout", 0.5).value)
-        self.realtime_priority = int(p("realtime_priority", 10).value)
-        self.feedback_gain = float(p("feedback_gain", 2.0).value)
-        self.feedback_max_velocity = float(p("feedback_max_velocity", 0.05).value)
-        self.record = bool(p("record", True).value)
-        self.recording_folder = Path(p("recording_folder", "recordings").value).expanduser().resolve()
+        self.max_path_error = float(p("max_path_error").value)
+        self.max_orientation_error = float(p("max_orientation_error").value)
+        self.fluid_twin = bool(p("fluid_twin").value)
+        self.arch = p("arch").value
+        self.precision = p("precision").value
+        state_rate = float(p("state_publish_rate").value)
+        q_init = list(p("twin_initial_positions").value)
+        self.cancel_timeout = float(p("cancel_timeout").value)
+        self.realtime_priority = int(p("realtime_priority").value)
+        self.feedback_gain = float(p("feedback_gain").value)
+        self.feedback_max_velocity = float(p("feedback_max_velocity").value)
+        self.record = bool(p("record").value)
+        self.recording_folder = Path(p("recording_folder").value).expanduser().resolve()
+        # how long an execution's result waits for the fluid twin to reach the end of the motion, so that its
+        # recording holds the fluid of the whole execution (a first execution waits for the twin's compile)
+        self.fluid_record_timeout = float(p("fluid_record_timeout").value)
 
         if self.mode not in MODES:
             raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
@@ -170,6 +220,7 @@ class SimNode(Node):
         self.measured_time = -math.inf
         self.last_reflex = ""
         self._fluid = None  # (task, size, process, inbox, outbox)
+        self._recording: Stream | None = None  # the execution whose fluid is being recorded (outlives its stream)
         self._fluid_lock = threading.Lock()
         self._mp = mp.get_context("spawn")
 
@@ -564,9 +615,10 @@ class SimNode(Node):
                 goal_handle.abort()
                 return result
         if self.fluid_twin:
-            self._fluid_reset(traj)
+            stream.fluid_epoch = self._fluid_reset(traj)
         if stream.recorder is not None:
             stream.metadata = self._recording_metadata(g, loaded, mounting, pl, target)
+            self._recording = stream
         self.stream = stream
         self._planning = False
         thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
@@ -592,11 +644,12 @@ class SimNode(Node):
         result.max_tracking_error = worst
         note = ""
         if stream.recorder is not None:
-            time.sleep(0.2)  # the fluid's last particles
+            note = self._record_fluid_to_the_end(stream, goal_handle)
+            self._recording = None
             path = stream.recorder.close()
             result.recording_path = str(path)
-            note = f"; recorded in {path}" + (f" (recording problem: {stream.recorder.error})"
-                                               if stream.recorder.error else "")
+            note = f"; recorded in {path}{note}" + (f" (recording problem: {stream.recorder.error})"
+                                                     if stream.recorder.error else "")
         if stream.outcome == "done":
             result.success = True
             result.message = (f"done: {summary}; max tracking error {worst * 1e3:.3g} mm; "
@@ -612,6 +665,28 @@ class SimNode(Node):
                 goal_handle.abort()
         self.get_logger().info(result.message)
         return result
+
+    def _record_fluid_to_the_end(self, stream: Stream, goal_handle) -> str:
+        """Wait (at most fluid_record_timeout) until the fluid twin has stepped every pose of the execution and
+        sent its final state, so that the recording holds the fluid up to the end of the motion; returns a note
+        for the result message."""
+        if stream.fluid_epoch < 0:
+            return ""
+        fluid = self._fluid
+        if fluid is None or not fluid[2].is_alive():
+            return f"; the fluid twin is not running: {stream.fluid_clouds} particle clouds recorded"
+        fluid[3].put({"kind": "final", "stamp": time.time_ns(), "epoch": stream.fluid_epoch})
+        t0 = time.monotonic()
+        while not stream.fluid_final.wait(0.5):
+            waited = time.monotonic() - t0
+            if waited > self.fluid_record_timeout or not fluid[2].is_alive():
+                why = "it stopped" if not fluid[2].is_alive() else f"not within {self.fluid_record_timeout:g} s"
+                self.get_logger().warn(f"the recording closes without the fluid's final state ({why})")
+                return (f"; the fluid twin did not reach the end of the motion ({why}): {stream.fluid_clouds} "
+                        f"particle clouds recorded")
+            goal_handle.publish_feedback(Execute.Feedback(progress=1.0, tracking_error=0.0,
+                                                          phase="recording the fluid"))
+        return f"; {stream.fluid_clouds} particle clouds of the fluid twin recorded, to the end of the motion"
 
     # --- the command stream ------------------------------------------------------------------------------
     def _open_recording(self, g):
@@ -716,6 +791,7 @@ class SimNode(Node):
         gc.disable()
         lead = 0.05  # s from now to the first command: the same instant on both clocks
         stream.t0, start_wall = time.monotonic() + lead, time.time() + lead
+        stream.start_ns = int(start_wall * 1e9)
         if stream.recorder is not None:
             stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
                 "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
@@ -829,15 +905,16 @@ class SimNode(Node):
                 self.get_logger().info(f"started the twin's fluid ({traj.task}, {size}) in process {proc.pid}")
             with self._fluid_epoch.get_lock():
                 self._fluid_epoch.value += 1
-            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(),
-                                "epoch": self._fluid_epoch.value})
+                epoch = self._fluid_epoch.value
+            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(), "epoch": epoch})
+            return epoch
 
     def _fluid_pose(self, fk: Robot, last: bool):
         q = self._arm_positions()
         if q is None or self._fluid is None:
             return
         self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(), "last": last,
-                            "epoch": self._fluid_epoch.value})
+                            "epoch": self._fluid_epoch.value, "stamp": time.time_ns()})
 
     def _fluid_quit(self):
         if self._fluid is None:
@@ -860,23 +937,40 @@ class SimNode(Node):
                 msg = fluid[4].get(timeout=0.2)
             except (queue.Empty, OSError, ValueError):
                 continue
+            if msg["kind"] == "compiling":
+                self.get_logger().info("the twin's fluid is compiling its kernels (about a minute on two cores the "
+                                       "first time; Taichi caches them)")
             if msg["kind"] == "ready":
                 self._scene = msg
                 self._build_markers(msg)
+                self.get_logger().info(f"the twin's fluid is ready ({msg['n']} particles; first step "
+                                       f"{msg.get('compile_seconds', 0.0):.1f} s, compilation included)")
             if msg["kind"] == "particles":
                 colors = self._scene["colors"] if self._scene is not None else None
                 self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
                                                        self.get_clock().now().to_msg(), colors))
-                stream = self.stream
-                if stream is not None and stream.recorder is not None:
-                    from fluidlab_ros.recording import downsample
-
-                    stamp = time.time_ns()
-                    cloud = point_cloud(downsample(msg["positions"]), self.robot.base_frame, None)
-                    cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-                    stream.recorder.put("/sim_node/particles", cloud, stamp)
+                rec = self._recording
+                if rec is not None and rec.recorder is not None and msg.get("epoch") == rec.fluid_epoch:
+                    rec.fluid_pending.append(msg)
+                    if rec.start_ns:  # the stream has started and written the metadata: record what came
+                        for m in rec.fluid_pending:
+                            self._record_cloud(rec, m)
+                        rec.fluid_pending.clear()
             elif msg["kind"] == "error":
                 self.get_logger().error(f"the twin's fluid failed: {msg['message']}")
+
+    def _record_cloud(self, rec: Stream, msg: dict):
+        """Record a particle cloud of the execution's fluid, stamped with the time the arm was at the pose the
+        fluid was stepped to (the initial state: the stream's start), however late the worker computed it."""
+        from fluidlab_ros.recording import downsample
+
+        stamp = int(msg.get("stamp") or rec.start_ns)
+        cloud = point_cloud(downsample(msg["positions"]), self.robot.base_frame, None)
+        cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        rec.recorder.put("/sim_node/particles", cloud, stamp)
+        rec.fluid_clouds += 1
+        if msg.get("final"):
+            rec.fluid_final.set()
 
     # --- state publishing ----------------------------------------------------------------------------------
     def _publish_state(self):
@@ -959,6 +1053,7 @@ def main(args=None):
     own = remove_ros_args(argv)[1:]  # what is left outside --ros-args ... (parameters go inside: -p name:=value)
     if own and own[0] in ("-h", "--help"):
         print(__doc__)
+        print(parameters_help())
         return 0
     if own:
         print(f"sim_node: unknown arguments {own}; set parameters with --ros-args -p name:=value (sim_node --help)",

@@ -8,13 +8,18 @@ holds no physics (docs/design.md §2).
 optimise_worker: runs fluidlab_core.optim.optimise and puts {"kind": "feedback", ...} per iteration and one
   {"kind": "result", ...} or {"kind": "error", ...}. A set `stop` event ends it at the next iteration (the
   node also terminates the process if that takes longer than it allows for a cancel).
-fluid_worker: the twin's fluid. It receives {"kind": "reset"} and {"kind": "pose", "pose": (7,)} messages;
-  each pose is where the executed tool is one task step (dt) after the previous one, and the worker steps the
-  task's simulator with the twist that takes its tool there:
+fluid_worker: the twin's fluid. On start it puts {"kind": "compiling"}, runs one step to compile the
+  simulator's kernels (and restores the state), then puts {"kind": "ready", "compile_seconds": ...}. It
+  receives {"kind": "reset"}, {"kind": "pose", "pose": (7,), "stamp": ns} and {"kind": "final", "stamp": ns}
+  messages; each pose is where the executed tool is one task step (dt) after the previous one, and the worker
+  steps the task's simulator with the twist that takes its tool there:
       v = (p_target - p_sim) / dt,   w = rotvec(R_target R_sim^T) / dt
   (tracking the executed pose, so the simulated tool does not drift from the arm's). It puts
-  {"kind": "particles", "positions": (N, 3) float32, "step": k} after the reset and every `publish_every`
-  steps.
+  {"kind": "particles", "positions": (N, 3) float32, "step": k, "stamp": ns or None, "epoch": e} after the
+  reset (stamp None), every `publish_every` steps and after the last pose (stamp: the wall time the arm was at
+  the pose the fluid was stepped to), and once more, with "final": True, when it reaches the "final" message:
+  by then it has stepped every pose sent before it, however far behind real time it ran, so a recording that
+  waits for it holds the fluid of the whole execution.
 """
 from __future__ import annotations
 
@@ -22,6 +27,9 @@ import os
 import queue
 import time
 import traceback
+
+
+FINAL_SETTLE = 1.0  # s: the most the fluid twin simulates after the last pose, with the tool still
 
 
 def _init_core(arch: str, precision: str):
@@ -99,9 +107,21 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
         sim = task.simulator()
         dt = task.dt
         tool = task.tool_name
-        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0]), **scene_description(sim)})
-        step = 0
+        # the first step compiles the kernels (about a minute on two cores with a cold cache): do it now, so the
+        # node can say so, and executions are not kept waiting for it
+        out.put({"kind": "compiling"})
+        t0 = time.perf_counter()
+        start = sim.get_state()
+        sim.step()
+        sim.set_state(start)
+        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0]),
+                 "compile_seconds": time.perf_counter() - t0, **scene_description(sim)})
+        step, stamp, current = 0, None, 0
         from fluidlab_ros.replay import tracking_twist
+
+        def publish(**extra):
+            out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step,
+                     "stamp": stamp, "epoch": current, **extra})
 
         while stop is None or not stop.is_set():
             try:
@@ -112,16 +132,28 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
                 return
             if epoch is not None and msg.get("epoch", epoch.value) < epoch.value:
                 continue
+            current = msg.get("epoch", current)
             if msg["kind"] == "reset":
                 pos = msg.get("tool_position")
                 task.reset(sim, tool_position=None if pos is None else np.asarray(pos, dtype=float))
-                step = 0
-                out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": 0})
+                step, stamp = 0, None
+                publish()
             elif msg["kind"] == "pose":
                 sim.step(tracking_twist(sim.tool_pose(tool), np.asarray(msg["pose"], dtype=float), dt))
-                step += 1
+                step, stamp = step + 1, msg.get("stamp")
                 if step % publish_every == 0 or msg.get("last"):
-                    out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step})
+                    publish()
+            elif msg["kind"] == "final":
+                # the tool has held still since the last pose: the fluid goes on moving until the end (at most
+                # FINAL_SETTLE seconds of it)
+                end = msg.get("stamp")
+                if stamp is not None and end is not None and end > stamp:
+                    held = min(round((end - stamp) * 1e-9 / dt), int(FINAL_SETTLE / dt))
+                    if held > 0:
+                        sim.step(None, n=held)
+                        step += held
+                    stamp = end
+                publish(final=True)
     except BaseException as err:  # noqa: BLE001
         out.put({"kind": "error", "message": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()})
 

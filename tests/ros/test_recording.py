@@ -82,10 +82,24 @@ def test_twin_execution_is_recorded_and_replays_to_the_plan(ros_env, client, tmp
         assert meta["trajectory_sha256"] == hashlib.sha256(src.read_bytes()).hexdigest()
         assert meta["software_version"] == fluidlab_core.__version__
         assert abs(meta["start_time"] - t[0]) < 0.05  # the first command went out when the metadata says
-        # the twin's fluid was recorded too (downsampled), unless its first compile outlasted the motion
+        # the twin's fluid was recorded too (downsampled), for the whole execution: this is the node's first
+        # execution, so its fluid worker was still compiling while the arm moved; the result waited for it
         rec = read_recording(folder)
         assert rec.closed and rec.counts["/sim_node/commands"] == n
         assert all(len(p) <= 2000 for _, p in rec.particles)
+        stamps = np.array([tp for tp, _ in rec.particles])
+        t_cmd = rec.commands[0]
+        task_steps = len(json.loads(src.read_text())["twists"])
+        print(f"\n[recording] {len(stamps)} fluid clouds from {stamps[0]:.3f} s to {stamps[-1]:.3f} s; commands "
+              f"{t_cmd[0]:.3f} to {t_cmd[-1]:.3f} s; {result.message}")
+        assert "to the end of the motion" in result.message, result.message
+        assert "the twin's fluid is compiling its kernels" in node.text()  # said, for the minute it takes
+        assert "the twin's fluid is ready" in node.text()
+        assert len(stamps) >= task_steps // 5 + 2, (len(stamps), task_steps)  # every 5th step, first and last
+        assert stamps[0] <= float(meta["task_start_time"]) + 1e-3  # the initial state, before the tool moves
+        assert stamps[-1] >= t_cmd[-1] - 1e-3  # the final state: at or after the end of motion
+        gaps = np.diff(stamps[(stamps > meta["task_start_time"]) & (stamps < meta["task_end_time"])])
+        assert gaps.size and gaps.max() < 1.0, gaps.max()  # no hole in the middle
 
         # replay through the node
         rp = client.action(Replay, "/sim_node/replay")
