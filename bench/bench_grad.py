@@ -8,7 +8,10 @@ Each horizon runs in a child process, so that its peak resident memory (ru_maxrs
 Ratios are against the fast forward run in the same process (warm kernels: each is run once first). Each
 time is the fastest of --repeat runs (default: 3 up to 1,000 steps, 1 beyond).
 
-    python bench/bench_grad.py [--horizons 100 1000 10000] [--grid 12] [--out bench/results/grad_cpu.txt]
+    python bench/bench_grad.py [--horizons 100 1000 10000] [--grid 12] [--arch cpu|cuda]
+                               [--out bench/results/grad_cpu.txt]
+
+With --arch cuda, peak RSS is host memory only (GPU memory is not measured yet).
 
 --grid sets the grid resolution (particles grow as its cube, substeps in proportion for stability).
 """
@@ -25,8 +28,8 @@ import numpy as np
 import fluidlab_core as fl
 from fluidlab_core import losses, shapes as S, materials as M
 from fluidlab_core.engine.checkpoint import rollout_with_grad
-fl.init(arch="cpu", precision="f32", seed=0)
-N, G, MEMORY, REPEAT = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+N, G, MEMORY, REPEAT, ARCH = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+cfg = fl.init(arch=ARCH, precision="f32", seed=0)
 sc = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=G, dt=4e-4, substeps=2 * G // 12)
 water = sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.1, 0.1, 0.03)), M.WATER, name="water")
 sc.add_tool(S.Cylinder((0, 0, 0), 0.006, 0.06), pose=(0.05, 0.05, 0.04, 0, 0, 0, 1), softness=500.0,
@@ -51,7 +54,7 @@ print(json.dumps({"N": N, "particles": sim.n_particles, "forward_s": fwd, "diff_
                   "segments": res.stats["segments"], "segment_steps": res.stats["segment_steps"],
                   "checkpoint_MB": res.stats["checkpoint_bytes"] / 1e6, "peak_rss_MB": resource.getrusage(
                       resource.RUSAGE_SELF).ru_maxrss / 1e3, "rss_after_compile_MB": rss_before / 1e3,
-                  "grad_finite": bool(np.all(np.isfinite(res.grad_actions)))}))
+                  "grad_finite": bool(np.all(np.isfinite(res.grad_actions))), "backend": cfg.backend}))
 """
 
 
@@ -61,6 +64,7 @@ def main():
     ap.add_argument("--grid", type=int, default=12, help="grid cells across the 10 cm box (a multiple of 12)")
     ap.add_argument("--grad-memory", type=float, default=512e6, help="bytes for the gradient buffer (build)")
     ap.add_argument("--repeat", type=int, default=None, help="runs per timing, the fastest kept")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -69,15 +73,15 @@ def main():
     for n in args.horizons:
         print(f"horizon {n} steps ...", file=sys.stderr, flush=True)
         out = subprocess.run([sys.executable, "-c", CHILD, str(n), str(args.grid), str(args.grad_memory),
-                              str(args.repeat or (3 if n <= 1000 else 1))], capture_output=True, text=True,
+                              str(args.repeat or (3 if n <= 1000 else 1)), args.arch], capture_output=True, text=True,
                              env=env)
         if out.returncode != 0:
             raise SystemExit(f"horizon {n} failed:\n{out.stderr[-3000:]}")
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     sub = 2 * args.grid // 12
     lines = [f"gradient benchmark: {rows[0]['particles']} particles, {args.grid}^3 grid, {sub} substeps of "
-             f"{0.4 / sub:.2g} ms per step, float32, CPU "
-             f"({os.cpu_count()} cores), gradient buffer {args.grad_memory / 1e6:.0f} MB, {time.strftime('%Y-%m-%d')}",
+             f"{0.4 / sub:.2g} ms per step, float32, {rows[0]['backend'].upper()} "
+             f"({os.cpu_count()} CPU cores), gradient buffer {args.grad_memory / 1e6:.0f} MB, {time.strftime('%Y-%m-%d')}",
              "| steps | segments x steps | fast fwd (s) | diff fwd (s) | fwd+bwd (s) | fwd+bwd / fast fwd | "
              "fwd+bwd / diff fwd | checkpoints (MB) | peak RSS (MB) |",
              "|---|---|---|---|---|---|---|---|---|"]

@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 from bench.bench_planning import stirring  # noqa: E402
 
 
-def run_once(tmp: Path, fluid: bool, env: dict) -> dict:
+def run_once(tmp: Path, fluid: bool, env: dict, arch: str = "cpu") -> dict:
     import rclpy
     from action_msgs.msg import GoalStatus
     from rclpy.action import ActionClient
@@ -39,7 +39,8 @@ def run_once(tmp: Path, fluid: bool, env: dict) -> dict:
     folder = tmp / "trajectories"
     log = open(tmp / f"node_{fluid}.log", "w")
     node = subprocess.Popen([str(bindir / "sim_node"), "--ros-args", "-p", f"trajectory_folder:={folder}", "-p",
-                             f"fluid_twin:={'true' if fluid else 'false'}", "-p", f"recording_folder:={tmp / 'recordings'}"], env=env, stdout=log,
+                             f"fluid_twin:={'true' if fluid else 'false'}", "-p", f"recording_folder:={tmp / 'recordings'}",
+                             "-p", f"arch:={arch}"], env=env, stdout=log,
                             stderr=subprocess.STDOUT)
     ready = tmp / f"mon_{fluid}.ready"
     out = tmp / f"mon_{fluid}.npz"
@@ -73,6 +74,8 @@ def run_once(tmp: Path, fluid: bool, env: dict) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "stream_cpu.txt"))
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"],
+                    help="Taichi backend of the node's fluid twin (default cpu)")
     args = ap.parse_args()
     env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                RMW_IMPLEMENTATION="rmw_fastrtps_cpp")
@@ -85,7 +88,7 @@ def main():
         tmp = Path(d)
         stirring().save(tmp / "trajectories" / "Mixing" / "bench_stir.json")
         for fluid in (False, True):
-            s = run_once(tmp, fluid, env)
+            s = run_once(tmp, fluid, env, args.arch)
             rows.append((fluid, s))
             print(json.dumps({"fluid_twin": fluid, **s}), flush=True)
     rclpy.shutdown()

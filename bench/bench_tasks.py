@@ -26,7 +26,7 @@ TASKS = ("LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard")
 METHODS = ("dp", "dp-h", "cma-es")
 
 
-def run_one(task, method, seed, size, budget_rollouts, out: Path):
+def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "cpu"):
     from fluidlab_core import tasks
 
     horizon = tasks.make(task, size).horizon
@@ -34,7 +34,7 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path):
     env = dict(os.environ, FLUIDLAB_CPU_THREADS=os.environ.get("FLUIDLAB_CPU_THREADS", "1"))
     cmd = [sys.executable, "-m", "fluidlab_core.cli", "optimise", task, "--method", method, "--seed", str(seed),
            "--size", size, "--budget", str(budget_rollouts * horizon), "--root", str(out / "trajectories"),
-           "--name", name]
+           "--name", name, "--arch", arch]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -65,11 +65,11 @@ def table(runs, size, rollouts) -> str:
     return "\n".join(lines)
 
 
-def zero_losses(size) -> dict:
+def zero_losses(size, arch: str = "cpu") -> dict:
     import fluidlab_core
     from fluidlab_core import tasks
 
-    fluidlab_core.init(arch="cpu", precision="f32")
+    fluidlab_core.init(arch=arch, precision="f32")
     out = {}
     for name in TASKS:
         t = tasks.make(name, size)
@@ -86,12 +86,13 @@ def main():
     ap.add_argument("--tasks", nargs="+", default=list(TASKS))
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--out", default="out/bench_tasks")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
     ap.add_argument("--table-only", action="store_true", help="remake the table from DIR/runs.jsonl")
     args = ap.parse_args()
     out = Path(args.out)
     if args.table_only:
         runs = [json.loads(line) for line in open(out / "runs.jsonl")]
-        zero = zero_losses(args.size)
+        zero = zero_losses(args.size, args.arch)
         for r in runs:
             r["zero_loss"] = zero.get(r["task"], float("nan"))
         text = table(runs, args.size, args.rollouts)
@@ -104,8 +105,9 @@ def main():
     jobs.sort(key=lambda j: j[1] == "cma-es")
     runs = []
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        futures = {pool.submit(run_one, t, m, s, args.size, args.rollouts, out): (t, m, s) for t, m, s in jobs}
-        futures[pool.submit(zero_losses, args.size)] = "zero"
+        futures = {pool.submit(run_one, t, m, s, args.size, args.rollouts, out, args.arch): (t, m, s)
+                   for t, m, s in jobs}
+        futures[pool.submit(zero_losses, args.size, args.arch)] = "zero"
         zero = {}
         for fut in as_completed(futures):
             if futures[fut] == "zero":

@@ -16,6 +16,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("bench_out")
     ap.add_argument("--dest", default="trajectories")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend of the videos")
     args = ap.parse_args()
     import fluidlab_core
     from fluidlab_core.episode import render_episode
@@ -26,7 +27,7 @@ def main():
     for r in runs:
         if "final_loss" in r and (r["task"] not in best or r["final_loss"] < best[r["task"]]["final_loss"]):
             best[r["task"]] = r
-    fluidlab_core.init(arch="cpu", precision="f32")
+    fluidlab_core.init(arch=args.arch, precision="f32")
     for task, r in sorted(best.items()):
         src = Path(r["trajectory"])
         dest = Path(args.dest) / task

@@ -1,13 +1,42 @@
-"""Shared test set-up: the CPU backend in float32 (what users run by default), initialised once."""
+"""Shared test set-up: the engine on the CPU in float32 (what users run by default), initialised once.
+
+FLUIDLAB_TEST_ARCH=cuda runs the whole suite with the engine on CUDA instead (the gradient tests switch to
+float64 on the same backend). Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid
+copies, thread counts), skipped on CUDA; `cuda` for tests that need a GPU, skipped on the CPU.
+"""
+import os
+
 import numpy as np
 import pytest
 
 import fluidlab_core
 
+TEST_ARCH = os.environ.get("FLUIDLAB_TEST_ARCH", "cpu")
+if TEST_ARCH not in ("cpu", "cuda"):
+    raise ValueError(f"FLUIDLAB_TEST_ARCH must be cpu or cuda, got {TEST_ARCH!r}")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "cpu_only: tests the CPU's own code paths; skipped with FLUIDLAB_TEST_ARCH=cuda")
+    config.addinivalue_line("markers", "cuda: needs a CUDA device; run with FLUIDLAB_TEST_ARCH=cuda")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if TEST_ARCH == "cuda" and "cpu_only" in item.keywords:
+            item.add_marker(pytest.mark.skip(reason="a CPU code path (FLUIDLAB_TEST_ARCH=cuda)"))
+        if TEST_ARCH != "cuda" and "cuda" in item.keywords:
+            item.add_marker(pytest.mark.skip(reason="needs CUDA: FLUIDLAB_TEST_ARCH=cuda on a GPU machine"))
+
+
+def init(precision: str = "f32"):
+    """The suite's backend (FLUIDLAB_TEST_ARCH) in the given precision, seed 0."""
+    return fluidlab_core.init(arch=TEST_ARCH, precision=precision, seed=0)
+
 
 @pytest.fixture(scope="session", autouse=True)
-def taichi_cpu():
-    fluidlab_core.init(arch="cpu", precision="f32", seed=0)
+def taichi_backend():
+    init("f32")
     yield
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import fluidlab_core as fl
+from tests import conftest
 from fluidlab_core import losses
 from tests.conftest import report
 from tests.extension import toy_material
@@ -21,9 +22,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def f64():
-    fl.init(arch="cpu", precision="f64", seed=0)
+    conftest.init("f64")
     yield
-    fl.init(arch="cpu", precision="f32", seed=0)
+    conftest.init("f32")
 
 
 @pytest.fixture

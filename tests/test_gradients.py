@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import fluidlab_core as fl
+from tests import conftest
 from fluidlab_core import losses
 from fluidlab_core import materials as M
 from fluidlab_core import shapes as S
@@ -28,9 +29,9 @@ N_STEPS = 6
 
 @pytest.fixture(scope="module")
 def f64():
-    fl.init(arch="cpu", precision="f64", seed=0)
+    conftest.init("f64")
     yield
-    fl.init(arch="cpu", precision="f32", seed=0)
+    conftest.init("f32")
 
 
 def build_scene():

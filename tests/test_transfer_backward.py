@@ -11,6 +11,7 @@ import pytest
 import taichi as ti
 
 import fluidlab_core as fl
+from tests import conftest
 from fluidlab_core import materials as M
 from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine import transfer
@@ -23,11 +24,11 @@ backward_svd = svd3.make_backward_svd(1e-10)
 
 @pytest.fixture(scope="module")
 def model():
-    fl.init(arch="cpu", precision="f64", seed=0)
+    conftest.init("f64")
     scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.08, 0.06), grid_res=10, dt=1e-3, substeps=20)
     scene.add_particles(fl.Box((0.02, 0.02, 0.02), (0.08, 0.06, 0.04)), M.WATER, name="water")
     yield scene.build().model
-    fl.init(arch="cpu", precision="f32", seed=0)
+    conftest.init("f32")
 
 
 def _fields(model, rng):
