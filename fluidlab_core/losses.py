@@ -20,7 +20,12 @@ import numpy as np
 @dataclass
 class StepState:
     """What a loss sees after `step` steps: positions x and velocities v of every particle (N, 3), tool
-    origins (T, 3) and rotations (T, 3, 3), all float64 in the world frame (m, m/s)."""
+    origins (T, 3) and rotations (T, 3, 3), all float64 in the world frame (m, m/s).
+
+    In a scene with emitters, `active` (N,) marks the particles that take part: every body's, and the pool
+    particles emitted so far (engine/emitters.py); the rows of the others hold parked values that mean
+    nothing. A loss must read only active rows (`select`), and the rollout zeroes any gradient it returns on
+    the others (`only_active`). `active` is None in a scene without emitters (every row takes part)."""
 
     step: int
     time: float
@@ -28,6 +33,24 @@ class StepState:
     v: np.ndarray
     tool_position: np.ndarray
     tool_rotation: np.ndarray
+    active: np.ndarray | None = None
+
+    def select(self, particles=None) -> np.ndarray:
+        """Row indices of the active particles among `particles` (a slice, an index array, or None for all)."""
+        rows = np.arange(len(self.x))[particles if particles is not None else slice(None)]
+        return rows if self.active is None else rows[self.active[rows]]
+
+    def only_active(self, grads: dict | None) -> dict | None:
+        """The gradients with their rows of inactive particles zeroed."""
+        if not grads or self.active is None:
+            return grads
+        out = dict(grads)
+        for key in ("x", "v"):
+            if out.get(key) is not None:
+                g = np.array(out[key], dtype=np.float64, copy=True)
+                g[~self.active] = 0.0
+                out[key] = g
+        return out
 
 
 GRAD_KEYS = ("x", "v", "tool_position", "tool_rotation")
@@ -95,16 +118,9 @@ class Sum(Loss):
         return self.weight * total, {k: self.weight * g for k, g in out.items()}
 
 
-def _rows(state_array, particles):
-    return state_array if particles is None else state_array[particles]
-
-
-def _scatter(n, particles, rows):
+def _scatter(n, rows, values):
     full = np.zeros((n, 3))
-    if particles is None:
-        full[:] = rows
-    else:
-        full[particles] = rows
+    full[rows] = values
     return full
 
 
@@ -119,24 +135,30 @@ class MeanSquaredDistance(Loss):
         self.particles = particles
 
     def evaluate(self, state, grad):
-        x = _rows(state.x, self.particles)
-        diff = x - self.target
+        chosen = np.arange(len(state.x))[self.particles if self.particles is not None else slice(None)]
+        keep = np.ones(len(chosen), dtype=bool) if state.active is None else state.active[chosen]
+        rows = chosen[keep]
+        if len(rows) == 0:  # nothing emitted yet
+            return 0.0, None
+        diff = state.x[rows] - (self.target if self.target.ndim == 1 else self.target[keep])
         value = float(np.mean(np.sum(diff * diff, axis=1)))
         if not grad:
             return value, None
-        return value, {"x": _scatter(len(state.x), self.particles, 2.0 * diff / len(x))}
+        return value, {"x": _scatter(len(state.x), rows, 2.0 * diff / len(rows))}
 
 
 class CenterOfMassDistance(MeanSquaredDistance):
     """|mean_p x_p − target|² (m²) over the chosen particles (equal masses within a body); target (3,)."""
 
     def evaluate(self, state, grad):
-        x = _rows(state.x, self.particles)
-        d = x.mean(axis=0) - self.target
+        rows = state.select(self.particles)
+        if len(rows) == 0:  # nothing emitted yet
+            return 0.0, None
+        d = state.x[rows].mean(axis=0) - self.target
         value = float(d @ d)
         if not grad:
             return value, None
-        return value, {"x": _scatter(len(state.x), self.particles, np.tile(2.0 * d / len(x), (len(x), 1)))}
+        return value, {"x": _scatter(len(state.x), rows, np.tile(2.0 * d / len(rows), (len(rows), 1)))}
 
 
 class Linear(Loss):
@@ -150,12 +172,13 @@ class Linear(Loss):
     def evaluate(self, state, grad):
         value = 0.0
         grads = {}
+        mask = 1.0 if state.active is None else state.active[:, None].astype(np.float64)
         if self.a is not None:
-            value += float(np.sum(self.a * state.x))
-            grads["x"] = self.a
+            value += float(np.sum(mask * self.a * state.x))
+            grads["x"] = mask * self.a
         if self.b is not None:
-            value += float(np.sum(self.b * state.v))
-            grads["v"] = self.b
+            value += float(np.sum(mask * self.b * state.v))
+            grads["v"] = mask * self.b
         return value, (grads if grad else None)
 
 

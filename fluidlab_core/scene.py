@@ -45,6 +45,7 @@ class ParticleHandle:
     count: int
     material: M.Material
     body: int  # rigid body index, or −1
+    emitter: int = -1  # the emitter whose pool these particles are (emitted in row order), or −1
 
     @property
     def slice(self) -> slice:
@@ -108,6 +109,7 @@ class Scene:
         self.bodies: list[_Body] = []
         self.statics: list[StaticHandle] = []
         self.tools: list = []  # engine.tools.ToolSpec
+        self.emitters: list = []  # engine.emitters.EmitterSpec
         self._n_particles = 0
         self._n_rigid = 0
 
@@ -201,6 +203,92 @@ class Scene:
         self.tools.append(spec)
         return spec
 
+    def add_emitter(self, material: M.Material, rate: float, nozzle: str = "disc", size=0.005, speed=None,
+                    pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), tool=None, name: str | None = None,
+                    pool: int | None = None, duration: float | None = None) -> ParticleHandle:
+        """A nozzle that adds `material` to the scene while it runs (engine/emitters.py has the equations).
+
+        rate: volumetric flow rate (m³/s). nozzle: "disc" (size: radius, m) or "rectangle" (size: (width,
+        height), m), in the xy plane of the nozzle frame; the fluid leaves along the frame's +z axis. speed:
+        exit speed (m/s; default rate / area, at which the stream leaves at rest density). pose: (x, y, z, qx,
+        qy, qz, qw) of the nozzle frame in the world, or in the tool's frame when `tool` (a tool from
+        add_tool, or its name) carries it. pool: particles to allocate (rounded up to whole rows), or
+        duration: seconds of emission to allocate for; one of them is needed. Returns the handle of the
+        emitted body (its rows hold the pool; readers return the particles emitted so far)."""
+        from fluidlab_core.engine.emitters import EmitterSpec, blocked_reason, nozzle_lattice, pool_for
+
+        if not isinstance(material, M.Material):
+            raise TypeError(f"material must be a fluidlab_core.materials.Material, got {type(material).__name__}")
+        if material.is_rigid:
+            raise ValueError(f"emitter: a rigid material ({material.name}) cannot be emitted; rigid bodies are "
+                             f"added with add_particles")
+        name = name or f"{material.name}_emitted_{len(self.emitters)}"
+        if any(b.handle.name == name for b in self.bodies):
+            raise ValueError(f"a particle body named {name!r} already exists")
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
+            raise ValueError(f"emitter {name!r}: pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, "
+                             f"got {pose!r}")
+        tool_index = None
+        if tool is not None:
+            key = tool if isinstance(tool, str) else getattr(tool, "name", None)
+            names = [t.name for t in self.tools]
+            if key not in names:
+                raise ValueError(f"emitter {name!r}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
+            tool_index = names.index(key)
+        sizes = np.atleast_1d(np.asarray(size, dtype=float))
+        extent = float((self.upper - self.lower).min())
+        across = 2.0 * sizes[0] if nozzle == "disc" else float(sizes.max())
+        if not np.all(sizes > 0):
+            raise ValueError(f"emitter {name!r}: the nozzle's size must be positive, got {size!r}")
+        if across >= extent:
+            raise ValueError(f"emitter {name!r}: the nozzle ({across:.4g} m across) is larger than the domain's "
+                             f"smallest side ({extent:.4g} m)")
+        if not (rate is not None and rate > 0 and math.isfinite(rate)):
+            raise ValueError(f"emitter {name!r}: the flow rate must be a positive number of m³/s, got {rate!r}")
+        spacing = self.particle_spacing
+        nozzle_size = float(sizes[0]) if nozzle == "disc" else tuple(sizes[:2])
+        if nozzle not in ("disc", "rectangle"):
+            raise ValueError(f"emitter {name!r}: nozzle must be 'disc' or 'rectangle', got {nozzle!r}")
+        if speed is None:  # the default exit speed: the stream leaves at rest density, u = Q / A
+            n_row = len(nozzle_lattice(nozzle, nozzle_size, spacing))
+            if n_row == 0:
+                raise ValueError(f"emitter {name!r}: the nozzle ({nozzle} {nozzle_size} m) holds no particle at the "
+                                 f"scene's spacing {spacing:.4g} m; make it larger")
+            speed = rate / (n_row * spacing ** 2)
+        spec = EmitterSpec(name, material, nozzle, nozzle_size, float(rate), float(speed), pose[:3].copy(),
+                           pose[3:] / np.linalg.norm(pose[3:]), tool_index, spacing)
+        if pool is None and duration is None:
+            raise ValueError(f"emitter {name!r}: give its pool (particles) or the duration (s) to allocate for")
+        if pool is not None:
+            if int(pool) < spec.n_row:
+                raise ValueError(f"emitter {name!r}: a pool of {pool} particles is smaller than one row of its "
+                                 f"nozzle ({spec.n_row} particles at spacing {spacing:.4g} m)")
+            spec.pool = -(-int(pool) // spec.n_row) * spec.n_row
+        else:
+            if not (duration > 0 and math.isfinite(duration)):
+                raise ValueError(f"emitter {name!r}: duration must be a positive number of seconds, got {duration!r}")
+            spec.pool = pool_for(spec, float(duration))
+        parent = self.tools[tool_index] if tool_index is not None else None
+        from scipy.spatial.transform import Rotation
+
+        tool_R = Rotation.from_quat(parent.quaternion).as_matrix() if parent is not None else None
+        why = blocked_reason(spec, self.statics, self.lower, self.upper, self.dx,
+                             parent.position if parent is not None else None, tool_R)
+        if why:
+            where = f"at the initial pose of tool {parent.name!r}" if parent is not None else "where it is fixed"
+            raise ValueError(f"emitter {name!r} cannot emit {where}: {why}; move the nozzle")
+        from fluidlab_core.engine.emitters import nozzle_world_points
+
+        exit_centre = nozzle_world_points(spec, parent.position if parent is not None else None, tool_R).mean(axis=0)
+        points = np.tile(exit_centre, (spec.pool, 1))  # parked at the nozzle until emitted
+        handle = ParticleHandle(name, len(self.bodies), self._n_particles, spec.pool, material, -1,
+                                emitter=len(self.emitters))
+        self._n_particles += spec.pool
+        self.bodies.append(_Body(handle, points, np.zeros_like(points), spec.particle_volume, None))
+        self.emitters.append(spec)
+        return handle
+
     # --- checks -----------------------------------------------------------------------------------------
     def stability_limits(self) -> dict:
         """The substep limits of the module docstring, with the numbers that set them."""
@@ -209,6 +297,8 @@ class Scene:
             v_max = float(self.max_speed)
         else:
             v0 = max((float(np.linalg.norm(b.velocity, axis=1).max()) for b in self.bodies), default=0.0)
+            v0 = max([v0] + [e.speed + (self.tools[e.tool].max_speed if e.tool is not None else 0.0)
+                             for e in self.emitters])
             height = float(self.upper[2] - self.lower[2])
             v_tools = max((t.max_speed for t in self.tools), default=0.0)
             v_max = max(v0, v_tools) + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
@@ -286,7 +376,11 @@ class Scene:
             body_index=np.concatenate([np.full(h.count, h.body) for h in handles]),
             rest_volume=np.concatenate([np.full(b.handle.count, b.rest_volume) for b in self.bodies]),
             materials=mats, statics=list(self.statics), tools=list(self.tools),
-            body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0])
+            body_shapes=[b.shape for b in self.bodies if b.handle.body >= 0],
+            emitters=list(self.emitters),
+            emitter_of=np.concatenate([np.full(h.count, h.emitter) for h in handles]),
+            pool_index=np.concatenate([np.arange(h.count) if h.emitter >= 0 else np.zeros(h.count, dtype=int)
+                                       for h in handles]))
         # every field is allocated before any data goes in: one SNode tree for all (engine/model.py)
         model = Model(spec, real)
         copies = runtime.scatter_copies()

@@ -73,22 +73,130 @@ class Simulator:
             raise RuntimeError("this simulator was built before fluidlab_core.init() reset Taichi; build the scene "
                                "again")
 
-    def step(self, action=None, n: int = 1) -> dict:
+    def step(self, action=None, n: int = 1, emit=None) -> dict:
         """Advance `n` steps of dt seconds each, holding the tools' velocity `action` over every step.
 
         action: for one tool a (6,) array (vx, vy, vz, wx, wy, wz) in m/s and rad/s in the world frame; for
         several an (n_tools, 6) array or a {tool name: (6,)} dict; None keeps tools still. Dimensions outside a
-        tool's action mask are ignored. Returns info: {"clipped": {tool name: True if the workspace clipped
-        its motion in any of these steps}}."""
+        tool's action mask are ignored. emit: which emitters run (a bool, one per emitter, or a {name: bool}
+        dict; default all). Returns info: {"clipped": {tool name: True if the workspace clipped its motion in
+        any of these steps}} and, in a scene with emitters, {"emitters": {name: {"emitted": particles so far,
+        "pool", "mass" (kg in the scene), "exhausted": the pool ran out and it stopped emitting, "blocked": why
+        it did not emit in some of these steps (its exit in a solid), or ""}}}."""
         self._check_alive()
         if action is not None and not self.tool_specs:
             raise ValueError("this scene has no tools, so step() takes no action")
         twist = T.parse_action(self.tool_specs, action)
-        clipped, _ = self._run(np.repeat(twist[None], int(n), axis=0), {})
-        return {"clipped": {spec.name: bool(clipped[:, i].any()) for i, spec in enumerate(self.tool_specs)}}
+        on = np.repeat(self._parse_emit(emit)[None], int(n), axis=0)
+        first = self.step_count
+        clipped, _, blocked = self._run(np.repeat(twist[None], int(n), axis=0), {}, emit_on=on)
+        info = {"clipped": {spec.name: bool(clipped[:, i].any()) for i, spec in enumerate(self.tool_specs)}}
+        if self.model.has_emitters:
+            info["emitters"] = self.emitter_report(blocked, first)
+        return info
+
+    # --- emitters ---------------------------------------------------------------------------------------
+    @property
+    def emitter_specs(self) -> list:
+        return self.model.emitter_specs
+
+    def _parse_emit(self, emit) -> np.ndarray:
+        """(n_emitters,) bools from None (all on), a bool, a sequence or a {name: bool} dict."""
+        specs = self.emitter_specs
+        if emit is None or emit is True:
+            return np.ones(len(specs), dtype=bool)
+        if emit is False:
+            return np.zeros(len(specs), dtype=bool)
+        if isinstance(emit, dict):
+            names = [s.name for s in specs]
+            out = np.ones(len(specs), dtype=bool)
+            for key, value in emit.items():
+                if key not in names:
+                    raise KeyError(f"no emitter named {key!r}; emitters: {', '.join(names) or 'none'}")
+                out[names.index(key)] = bool(value)
+            return out
+        arr = np.asarray(emit, dtype=bool).reshape(-1)
+        if arr.shape != (len(specs),):
+            raise ValueError(f"emit must switch {len(specs)} emitter(s), got {arr.shape[0]} values")
+        return arr
+
+    def _emission_plan(self, twists, emit_on):
+        """The emitters' on/off per step (N, E), with tool-carried nozzles off where their exit would be in a
+        solid, and {emitter: (first blocked step, reason)}."""
+        from fluidlab_core.engine import emitters
+
+        n = len(twists)
+        on = np.ones((n, self.model.n_emitters), dtype=bool) if emit_on is None else np.asarray(emit_on, dtype=bool)
+        if on.shape != (n, self.model.n_emitters):
+            raise ValueError(f"emit_on must have shape ({n}, {self.model.n_emitters}), got {on.shape}")
+        if not self.model.emitters_on_tools:
+            return on, {}
+        position, rotation = self.state.read_tools(0)
+        applied, _ = T.plan(self.tool_specs, position, twists, self.dt, self.substeps)
+        pos, rot = T.plan_poses(self.tool_specs, position, rotation, applied, self.dt)
+        return emitters.plan(self.emitter_specs, self.scene.statics, self.scene.lower, self.scene.upper,
+                             self.scene.dx, rot, pos, on)
+
+    def emitter_report(self, blocked: dict | None = None, first_step: int = 0) -> dict:
+        """Per emitter: particles emitted, pool, mass in the scene (kg), whether its pool ran out, and why it was
+        blocked in the steps just run, which began after step `first_step` (see `step`)."""
+        from fluidlab_core.engine import emitters
+
+        emitted, on_time = self.state.emission
+        ran_out = emitters.exhausted(self.emitter_specs, emitted, on_time)
+        out = {}
+        for e, spec in enumerate(self.emitter_specs):
+            g_why = (blocked or {}).get(e)
+            out[spec.name] = {
+                "emitted": int(emitted[e]), "pool": spec.pool,
+                "mass": float(emitted[e] * spec.particle_volume * spec.material.density),
+                "exhausted": bool(ran_out[e]),
+                "blocked": f"emitted nothing in step {first_step + g_why[0] + 1} (and maybe later ones): {g_why[1]}"
+                if g_why else ""}
+            if ran_out[e]:
+                out[spec.name]["message"] = (f"emitter {spec.name!r} used up its pool of {spec.pool} particles and "
+                                             f"stopped emitting; build with a larger pool or duration")
+        return out
+
+    def emitter_pose(self, name: str) -> np.ndarray:
+        """(x, y, z, qx, qy, qz, qw) of a nozzle frame in its parent frame (the world, or its tool's frame)."""
+        spec = self._emitter(name)
+        return np.concatenate([spec.position, spec.quaternion])
+
+    def set_emitter_pose(self, name: str, pose):
+        """Move a nozzle (in its parent frame); a fixed nozzle whose exit would lie in a solid is refused. The
+        gradients of a rollout with respect to this pose are `grad_emitter_position/rotation`."""
+        from fluidlab_core.engine.emitters import blocked_reason
+
+        spec = self._emitter(name)
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
+            raise ValueError(f"emitter pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, got {pose!r}")
+        old = spec.position, spec.quaternion
+        spec.position, spec.quaternion = pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:])
+        if spec.tool is None:
+            why = blocked_reason(spec, self.scene.statics, self.scene.lower, self.scene.upper, self.scene.dx)
+            if why:
+                spec.position, spec.quaternion = old
+                raise ValueError(f"emitter {name!r} cannot emit there: {why}")
+        e = self.emitter_specs.index(spec)
+        em = self.model.emitters
+        em.position[e] = spec.position.tolist()
+        em.rotation[e] = spec.rotation().tolist()
+
+    def _emitter(self, name: str):
+        names = [s.name for s in self.emitter_specs]
+        if name not in names:
+            raise KeyError(f"no emitter named {name!r}; emitters: {', '.join(names) or 'none'}")
+        return self.emitter_specs[names.index(name)]
+
+    def active_rows(self) -> np.ndarray | None:
+        """(N,) bools: the particles that take part now (None: all, in a scene without emitters)."""
+        return loop.active_rows(self.model, self.state.emission[0])
 
     def rollout(self, actions, loss, grad: bool = False, segment_steps: int | None = None, checkpoint_dir=None,
-                progress=None, *, terms: dict | None = None, step_offset: int = 0, horizon: int | None = None):
+                progress=None, *, terms: dict | None = None, step_offset: int = 0, horizon: int | None = None,
+                emit_on=None):
         """Run len(actions) steps from the current state and return the loss (and its gradients).
 
         actions: (N, 6) for one tool or (N, n_tools, 6): tool twists per step as in `step` (N ≥ 1); for a scene
@@ -105,6 +213,7 @@ class Simulator:
             `result.terms[name]` (e.g. a task's reward term).
         step_offset, horizon: the step numbers and horizon the losses see (default: the rollout's own steps
             1 … N; an environment stepping one step at a time passes its episode's).
+        emit_on: (N, n_emitters) bools, which emitters run in each step (default: all, always).
 
         The simulator ends in the rollout's final state, as after the same calls to `step`."""
         from fluidlab_core.engine.checkpoint import rollout_with_grad
@@ -126,18 +235,28 @@ class Simulator:
                 raise ValueError("rollout(grad=True) takes one loss over the rollout's own steps (no terms, "
                                  "step_offset or horizon)")
             start = self.step_count
+            on, blocked = self._emission_plan(twists, emit_on) if self.model.has_emitters else (None, {})
             with self._first_run("grad", "the differentiable solver's kernels (forward and backward)"):
                 result, final = rollout_with_grad(
                     self.diff, self.get_state(), twists, loss, True, segment_steps, checkpoint_dir, progress,
-                    on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step))
+                    on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step), emit_on=on)
             self.set_state(final)
+            if self.model.has_emitters:
+                result.stats["emitters"] = self.emitter_report(blocked, start)
             return result
-        clipped, values = self._run(twists, {"loss": loss, **(terms or {})}, progress, step_offset, horizon)
+        first = self.step_count
+        clipped, values, blocked = self._run(twists, {"loss": loss, **(terms or {})}, progress, step_offset, horizon,
+                                             emit_on)
         step_losses = values.pop("loss")
-        return loop.RolloutResult(float(step_losses.sum()), step_losses, clipped.any(axis=2), terms=values)
+        result = loop.RolloutResult(float(step_losses.sum()), step_losses, clipped.any(axis=2), terms=values)
+        if self.model.has_emitters:
+            result.stats["emitters"] = self.emitter_report(blocked, first)
+        return result
 
-    def _run(self, twists, losses, progress=None, step_offset=0, horizon=None):
-        """The fast solver through the rollout loop: (clipped (N, n_tools, 3), {name: per-step values})."""
+    def _run(self, twists, losses, progress=None, step_offset=0, horizon=None, emit_on=None):
+        """The fast solver through the rollout loop: (clipped (N, n_tools, 3), {name: per-step values},
+        {emitter: (first blocked step, reason)})."""
+        on, blocked = self._emission_plan(twists, emit_on) if self.model.has_emitters else (None, {})
         position, _ = self.state.read_tools(0)
         applied, clipped = T.plan(self.tool_specs, position, twists, self.dt, self.substeps)
         start = self.step_count
@@ -150,8 +269,9 @@ class Simulator:
                 progress(phase, done, total)
 
         with self._first_run("fast", "the simulator's kernels"):
-            values, _ = loop.run(stepper, applied, losses, step_offset=step_offset, horizon=horizon, progress=tick)
-        return clipped, values
+            values, _ = loop.run(stepper, applied, losses, emit_on=on, step_offset=step_offset, horizon=horizon,
+                                 progress=tick)
+        return clipped, values, blocked
 
     def _first_run(self, solver: str, what: str):
         """runtime.compiling around a solver's first run (which compiles its kernels), nothing afterwards."""
@@ -193,7 +313,8 @@ class Simulator:
         from fluidlab_core.losses import StepState
 
         x, v, tp, tR = self.state.read_steps([0])
-        return StepState(self.step_count, self.time, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0])
+        return StepState(self.step_count, self.time, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0],
+                         self.active_rows())
 
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
@@ -219,7 +340,13 @@ class Simulator:
         return h
 
     def _rows(self, data, h):
-        return (data if h is None else data[self.handle(h).slice]).astype(np.float64)
+        """The rows of body h (all bodies if None) that take part: a body being emitted has the particles that
+        have left its nozzle."""
+        rows = np.arange(self.n_particles)[slice(None) if h is None else self.handle(h).slice]
+        active = self.active_rows()
+        if active is not None:
+            rows = rows[active[rows]]
+        return data[rows].astype(np.float64)
 
     def positions(self, h=None) -> np.ndarray:
         """(N, 3) particle positions (m) of body `h` (all particles if None)."""
@@ -244,6 +371,13 @@ class Simulator:
     def pressures(self, h=None) -> np.ndarray:
         """Cauchy pressure −tr(σ)/3 of each particle (Pa)."""
         return -np.trace(self.stresses(h), axis1=1, axis2=2) / 3.0
+
+    def particle_colors(self) -> np.ndarray:
+        """(N, 3) uint8 colour of every particle row, by its body's material."""
+        colors = np.zeros((self.n_particles, 3), dtype=np.uint8)
+        for h in self.handles.values():
+            colors[h.slice] = np.round(255 * np.asarray(h.material.color)).astype(np.uint8)
+        return colors
 
     def masses(self, h=None) -> np.ndarray:
         return self._rows(self.model.mass.to_numpy(), h)
@@ -271,10 +405,11 @@ class Simulator:
             behind = points[(points - centre) @ toward < 0.0]
             if len(behind):
                 layers.append(Layer(behind, (0.72, 0.72, 0.74), st.name))
-        x = self.positions()
         for h in self.handles.values():
             if bodies is None or h.name in bodies:
-                layers.append(Layer(x[h.slice], h.material.color, h.name))
+                x = self.positions(h)  # of a body being emitted: what has left its nozzle
+                if len(x):
+                    layers.append(Layer(x, h.material.color, h.name))
         return render(layers, path, view=view, bounds=(self.scene.lower, self.scene.upper), size=size, title=title)
 
     # --- state ------------------------------------------------------------------------------------------
@@ -287,6 +422,6 @@ class Simulator:
         """Restore a state from `get_state()` exactly."""
         if not isinstance(state, State):
             raise TypeError(f"set_state takes a State (from get_state()), got {type(state).__name__}")
-        state.check_shapes(self.n_particles, len(self.tool_specs))
+        state.check_shapes(self.n_particles, len(self.tool_specs), self.model.n_emitters)
         self.state.write(0, state)
         self.step_count = int(state.step)

@@ -946,7 +946,7 @@ class SimNode(Node):
                 self.get_logger().info(f"the twin's fluid is ready ({msg['n']} particles; first step "
                                        f"{msg.get('compile_seconds', 0.0):.1f} s, compilation included)")
             if msg["kind"] == "particles":
-                colors = self._scene["colors"] if self._scene is not None else None
+                colors = msg.get("colors", self._scene["colors"] if self._scene is not None else None)
                 self.pub_particles.publish(point_cloud(msg["positions"], self.robot.base_frame,
                                                        self.get_clock().now().to_msg(), colors))
                 rec = self._recording

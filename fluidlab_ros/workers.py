@@ -78,10 +78,7 @@ def scene_description(sim) -> dict:
     (0..1). Point samples keep this generic over primitives, containers and meshes."""
     import numpy as np
 
-    n = sim.positions().shape[0]
-    colors = np.zeros((n, 3), dtype=np.uint8)
-    for h in sim.handles.values():
-        colors[h.slice] = np.round(255 * np.asarray(h.material.color)).astype(np.uint8)
+    colors = sim.particle_colors()
     dx = sim.scene.dx
     statics = [(st.name, st.shape.sample(dx).astype(np.float32)) for st in sim.scene.statics]
     tools = [(spec.name, spec.shape.sample(0.5 * dx).astype(np.float32), tuple(spec.color)) for spec in sim.tool_specs]
@@ -114,14 +111,20 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
         start = sim.get_state()
         sim.step()
         sim.set_state(start)
-        out.put({"kind": "ready", "dt": dt, "n": int(sim.positions().shape[0]),
+        out.put({"kind": "ready", "dt": dt, "n": int(sim.n_particles),
                  "compile_seconds": time.perf_counter() - t0, **scene_description(sim)})
         step, stamp, current = 0, None, 0
         from fluidlab_ros.replay import tracking_twist
 
+        colors = sim.particle_colors()
+
         def publish(**extra):
+            # the particles that take part (of a body being emitted: those that have left the nozzle), with
+            # their colours
+            active = sim.active_rows()
             out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step,
-                     "stamp": stamp, "epoch": current, **extra})
+                     "stamp": stamp, "epoch": current,
+                     "colors": colors if active is None else colors[active], **extra})
 
         while stop is None or not stop.is_set():
             try:

@@ -100,10 +100,11 @@ def _default_nonfinite(fields, particle, step):
 
 
 def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool = True, segment_steps=None,
-                      checkpoint_dir=None, progress=None, on_nonfinite=None):
+                      checkpoint_dir=None, progress=None, on_nonfinite=None, emit_on=None):
     """Run len(twists) steps from `start` on the differentiable solver (see the module docstring).
 
-    twists: (N, n_tools, 6) masked tool twists, clipped here to the tools' workspaces. progress(phase, done,
+    twists: (N, n_tools, 6) masked tool twists, clipped here to the tools' workspaces; emit_on: (N, n_emitters)
+    bools, the emitters switched on per step (None: always on). progress(phase, done,
     total) is called once per step with phase "forward", "recompute" or "backward". on_nonfinite(fields,
     particle, step) raises the caller's error for a NaN state. Returns (RolloutResult, the final State)."""
     model = solver.model
@@ -136,8 +137,8 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
 
     try:
         solver.state.write(0, start)
-        values, _ = rollout.run(stepper, applied, {"loss": loss}, want_grad=want_grad, on_block=on_block,
-                                progress=progress, grads=loss_grads)
+        values, _ = rollout.run(stepper, applied, {"loss": loss}, emit_on=emit_on, want_grad=want_grad,
+                                on_block=on_block, progress=progress, grads=loss_grads)
         step_losses = values["loss"]
         final_slot = len(last) * sub
         final = solver.state.read(final_slot, step=start.step + n_steps)
@@ -147,7 +148,8 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
                         "forward_seconds": forward_seconds}
         if grad:
             stepper.keep = lambda b: True  # the recompute pass keeps what each segment's backward reads
-            _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads)
+            _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads,
+                      emit_on)
             result.stats["backward_seconds"] = time.perf_counter() - t0 - forward_seconds
             result.stats["checkpoint_bytes"] = store.nbytes
         return result, final
@@ -155,8 +157,11 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
         store.close()
 
 
-def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads):
+def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads,
+              emit_on=None):
     model = solver.model
+    if model.has_emitters:
+        model.emitters.clear_grads()
     state = solver.state
     n_steps, sub, dt = len(applied), model.substeps, model.step_dt
     n_tools = model.n_tools
@@ -172,7 +177,8 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
         steps = range(seg * K, min(n_steps, (seg + 1) * K))
         if seg != n_seg - 1:  # the last segment is still in the buffer from the forward pass
             state.write(0, store.get(seg))
-            stepper.run_block(steps, applied[steps.start:steps.stop], tick, "recompute", seg)
+            stepper.run_block(steps, applied[steps.start:steps.stop],
+                              None if emit_on is None else emit_on[steps.start:steps.stop], tick, "recompute", seg)
         solver.clear_grads()
         if carry is not None:
             state.add_grad(len(steps) * sub, carry)
@@ -183,7 +189,7 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
             grads = {g: loss_grads.pop(g) for g in chunk if g in loss_grads}
             missing = [g for g in chunk if g not in grads]
             for g, step_state in (stepper.states(steps, missing, 0) if missing else ()):
-                grads[g] = loss(step_state, n_steps, grad=True)[1]
+                grads[g] = step_state.only_active(loss(step_state, n_steps, grad=True)[1])
             for g in reversed(chunk):
                 for key, value in grads[g].items():
                     if not np.all(np.isfinite(value)):
@@ -231,6 +237,12 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
     else:
         result.grad_tool_position = np.zeros((0, 3))
         result.grad_tool_rotation = np.zeros((0, 3))
+    result.grad_emitter_position, result.grad_emitter_rotation = np.zeros((0, 3)), np.zeros((0, 3))
+    if model.has_emitters:
+        gp, gR = model.emitters.pose_grads()
+        R0 = np.stack([s.rotation() for s in model.emitter_specs])
+        result.grad_emitter_position = gp
+        result.grad_emitter_rotation = rotation_tangent_grad(gR, R0)
 
 
 def _raise_nonfinite(fields, g: int, dt: float):

@@ -67,7 +67,7 @@ class DiffSolver(Solver):
         super().__init__(model, scatter_copies, needs_grad=True)
         real, n = model.real, model.n_particles
         self.n_slots = int(n_slots)
-        self.state = StateBuffer(n, model.n_tools, self.n_slots, real, needs_grad=True)
+        self.state = StateBuffer(n, model.n_tools, self.n_slots, real, needs_grad=True, n_emitters=model.n_emitters)
         # per-substep intermediates, recomputed by the backward pass
         self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of (I + Δt C) F: left rotation
         self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
@@ -161,7 +161,7 @@ class DiffSolver(Solver):
     @ti.kernel
     def forward_kernel(self, s: ti.i32, keep: ti.template()):
         """Slot s → slot s + 1 (Solver.mpm_substep), with the stores when `keep`."""
-        self.mpm_substep(self.state, s, s + 1, keep, 0, False)
+        self.mpm_substep(self.state, s, s + 1, keep, 0, False, 0, False)
 
     # --- SVD and stress -------------------------------------------------------------------------------
     @ti.kernel
@@ -206,10 +206,21 @@ class DiffSolver(Solver):
         each gradient kernel stays small."""
         for p in range(self.n_particles):
             if self.model.model[p] == k:
-                prm = self.model.params[k][self.model.material[p]]
-                self.F_model[p], self.tau[p] = self.model.constitutive[k].func(
-                    transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]), self.state.C[s, p],
-                    prm, self.U[p], self.sig[p], self.V[p])
+                if self._active(s, p):
+                    prm = self.model.params[k][self.model.material[p]]
+                    self.F_model[p], self.tau[p] = self.model.constitutive[k].func(
+                        transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]),
+                        self.state.C[s, p], prm, self.U[p], self.sig[p], self.V[p])
+                else:  # a pool particle not yet emitted: F = I, τ = 0, whatever its slot holds
+                    self.F_model[p], self.tau[p] = ti.Matrix.identity(float, 3), ti.Matrix.zero(float, 3, 3)
+
+    @ti.func
+    def _active(self, s, p):
+        """Whether particle p takes part in substep s (always, without emitters)."""
+        out = True
+        if ti.static(self.model.has_emitters):
+            out = self.model.emitters.active(self.state, s, p)
+        return out
 
     # --- P2G, grid update, G2P: backward ------------------------------------------------------------
     @ti.kernel
@@ -217,13 +228,16 @@ class DiffSolver(Solver):
         """Backward of P2G (transfer.p2g_backward) with the stored stress; F of slot s + 1 is F_model (without
         rigid bodies)."""
         for p in range(self.n_particles):
-            gx, gv, gC, gtau = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad,
-                                                     self.state.x[s, p], self.state.v[s, p], self.state.C[s, p],
-                                                     self.store_tau[s, p], p)
-            # one thread per particle: plain read-modify-write (Taichi makes `+=` on a field an atomic add)
-            self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx
-            self.state.v.grad[s, p] = self.state.v.grad[s, p] + gv
-            self.state.C.grad[s, p] = self.state.C.grad[s, p] + gC
+            gtau = ti.Matrix.zero(float, 3, 3)
+            if self._active(s, p):  # a pool particle not yet emitted scattered nothing
+                gx, gv, gC, gtau_p = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad,
+                                                           self.state.x[s, p], self.state.v[s, p],
+                                                           self.state.C[s, p], self.store_tau[s, p], p)
+                # one thread per particle: plain read-modify-write (Taichi makes `+=` on a field an atomic add)
+                self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx
+                self.state.v.grad[s, p] = self.state.v.grad[s, p] + gv
+                self.state.C.grad[s, p] = self.state.C.grad[s, p] + gC
+                gtau = gtau_p
             self.tau.grad[p] = gtau  # the first to write these in a substep's backward
             if ti.static(not self.has_rigid):
                 self.F_model.grad[p] = self.state.F.grad[s + 1, p]
@@ -245,9 +259,23 @@ class DiffSolver(Solver):
         for p in range(self.n_particles):
             xp, vp = grid.project(self.model, self.store_x_pre[s, p] + self.x_pre[p],
                                   self.store_v_pre[s, p] + self.v_pre[p])
+            Cp = ti.Matrix.zero(float, 3, 3)
+            if ti.static(self.has_rigid):
+                Cp = self.store_C_pre[s, p] + self.C_pre[p]
+            if ti.static(self.model.has_emitters):
+                # pool particles: born in this substep (from the nozzle, whose pose carries the gradient), or
+                # parked (their slot s + 1 depends on nothing that matters: they get no gradient)
+                e = self.model.emitters.emitter[p]
+                if e >= 0:
+                    j = self.model.emitters.pool_index[p]
+                    if j >= self.state.emit_n[e, s + 1]:
+                        xp, vp, Cp = self.state.x[s, p], self.state.v[s, p], ti.Matrix.zero(float, 3, 3)
+                    elif j >= self.state.emit_n[e, s]:
+                        xp, vp = self.model.emitters.newborn(self.model, self.state, s, p, self.state.emit_t[e, s + 1])
+                        Cp = ti.Matrix.zero(float, 3, 3)
             if ti.static(self.has_rigid):
                 self.rigid.x_g[p], self.rigid.v_g[p] = xp, vp
-                self.rigid.C_g[p] = self.store_C_pre[s, p] + self.C_pre[p]
+                self.rigid.C_g[p] = Cp
             else:
                 self.state.x[s + 1, p], self.state.v[s + 1, p] = xp, vp
 
@@ -284,7 +312,18 @@ class DiffSolver(Solver):
 
     @ti.func
     def _gather_grad_particle(self, c, s, p):
-        """Particle p's part of g2p_gather_grad, its grid gradient into copy c (or atomically into the grid)."""
+        """Particle p's part of g2p_gather_grad, its grid gradient into copy c (or atomically into the grid); a
+        pool particle not yet emitted at slot s gathered nothing."""
+        if self._active(s, p):
+            self._gather_grad_active(c, s, p)
+        else:
+            self.x_pre.grad[p] = ti.Vector.zero(float, 3)
+            self.v_pre.grad[p] = ti.Vector.zero(float, 3)
+            if ti.static(self.has_rigid):
+                self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.func
+    def _gather_grad_active(self, c, s, p):
         gx = self.x_pre.grad[p]
         gv = self.v_pre.grad[p]
         gC = self.state.C.grad[s + 1, p]

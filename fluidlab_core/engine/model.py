@@ -31,6 +31,7 @@ import numpy as np
 import taichi as ti
 
 from fluidlab_core.engine import constitutive, statics
+from fluidlab_core.engine.emitters import EmitterModel
 from fluidlab_core.engine.rigid import RigidModel
 from fluidlab_core.engine.state import State, StateBuffer
 from fluidlab_core.engine.tools import Tool
@@ -58,6 +59,9 @@ class ModelSpec:
     statics: list = field(default_factory=list)  # scene.StaticHandle: shape, friction, sticky
     tools: list = field(default_factory=list)  # tools.ToolSpec
     body_shapes: list = field(default_factory=list)  # each rigid body's Shape at rest (world frame)
+    emitters: list = field(default_factory=list)  # emitters.EmitterSpec
+    emitter_of: np.ndarray | None = None  # (N,) the emitter whose pool a particle belongs to, or -1
+    pool_index: np.ndarray | None = None  # (N,) its place in that emitter's emission order
 
 
 @ti.data_oriented
@@ -131,6 +135,15 @@ class Model:
         self.tool_dt = ti.field(ti.f64, shape=())
         self._uploads.append((self.tool_dt, np.array(self.dt)))
 
+        # emitters (emitters.py): which particles are pools, the nozzles; static flags the kernels unroll on
+        self.emitter_specs = list(spec.emitters)
+        self.n_emitters = len(self.emitter_specs)
+        self.has_emitters = self.n_emitters > 0
+        self.emitters_on_tools = any(e.tool is not None for e in self.emitter_specs)
+        self.emitters = None
+        if self.has_emitters:
+            self.emitters = EmitterModel(self.emitter_specs, spec.emitter_of, spec.pool_index, real, self._uploads)
+
         self.rigid = None
         if np.any(spec.body_index >= 0):
             self.rigid = RigidModel(spec.body_index, spec.x, mass, real, spec.body_shapes, self.dx)
@@ -161,8 +174,10 @@ class Model:
         rotation = np.array([Rotation.from_quat(t.quaternion).as_matrix() for t in self.tool_specs],
                             dtype=np.float64).reshape(-1, 3, 3)
         return State(np.asarray(spec.x, dtype=r), np.asarray(spec.v, dtype=r), np.zeros((n, 3, 3), r),
-                     np.tile(np.eye(3, dtype=r), (n, 1, 1)), position, rotation, 0)
+                     np.tile(np.eye(3, dtype=r), (n, 1, 1)), position, rotation, 0,
+                     np.zeros(self.n_emitters, dtype=np.int64), np.zeros(self.n_emitters))
 
     def state(self) -> StateBuffer:
         """A device state of one slot for the fast solver (tool poses in float64), not yet written."""
-        return StateBuffer(self.n_particles, self.n_tools, 1, self.real, pose_real=ti.f64)
+        return StateBuffer(self.n_particles, self.n_tools, 1, self.real, pose_real=ti.f64,
+                           n_emitters=self.n_emitters)

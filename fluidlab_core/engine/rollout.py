@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fluidlab_core.engine.control import Control
+from fluidlab_core.engine.emitters import schedule
 from fluidlab_core.losses import StepState
 
 LOSS_READ_BYTES = 16e6  # states read back per launch for the loss (SegmentStepper.states)
@@ -32,7 +33,9 @@ class RolloutResult:
     grad_actions: (N, n_tools, 6) dL/d(vx, vy, vz, wx, wy, wz) per step (zero where the action mask or the
     workspace clipping leaves an action no effect); grad_tool_position: (n_tools, 3) dL/dp of the initial
     tool origins; grad_tool_rotation: (n_tools, 3) dL/dθ for an initial rotation R₀ ← exp([θ]×) R₀ (world
-    frame); grad_velocities / grad_positions: (n_particles, 3) dL/dv⁰, dL/dx⁰ of the initial particle state.
+    frame); grad_velocities / grad_positions: (n_particles, 3) dL/dv⁰, dL/dx⁰ of the initial particle state
+    (zero on pool particles not yet emitted); grad_emitter_position / grad_emitter_rotation: the same for each
+    emitter's nozzle pose in its parent frame (the world, or its tool's frame).
     terms: per-step values (N,) of the extra loss terms asked for by name (`terms=` of the rollout)."""
 
     loss: float
@@ -43,6 +46,8 @@ class RolloutResult:
     grad_tool_rotation: np.ndarray | None = None
     grad_velocities: np.ndarray | None = None
     grad_positions: np.ndarray | None = None
+    grad_emitter_position: np.ndarray | None = None  # (n_emitters, 3) dL/d nozzle origin in its parent frame
+    grad_emitter_rotation: np.ndarray | None = None  # (n_emitters, 3) dL/dθ for R ← exp([θ]×) R, parent frame
     stats: dict = field(default_factory=dict)  # segments, segment_steps, checkpoint bytes, seconds
     terms: dict = field(default_factory=dict)
 
@@ -57,9 +62,10 @@ class FastStepper:
         self.first_step = first_step  # steps taken before the rollout (the NaN check counts from the start)
         self.block_steps = 1
 
-    def run_block(self, block: range, applied: np.ndarray, progress=None, phase: str = "forward", b: int = 0):
+    def run_block(self, block: range, applied: np.ndarray, emit_on=None, progress=None, phase: str = "forward",
+                  b: int = 0):
         for j, g in enumerate(block):
-            self.solver.step(self.state, Control(applied[j]))
+            self.solver.step(self.state, Control(applied[j], None if emit_on is None else emit_on[j]))
             if progress:
                 progress(phase, g + 1, None)
 
@@ -71,7 +77,8 @@ class FastStepper:
         x, v, tp, tR = self.state.read_steps([0])
         g = block[-1]
         k = step_offset + g + 1
-        yield g, StepState(k, k * self.dt, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0])
+        active = active_rows(self.solver.model, self.state.emission[0])
+        yield g, StepState(k, k * self.dt, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0], active)
 
     def check(self, block: range):
         step = self.first_step + block[-1] + 1
@@ -92,9 +99,17 @@ class SegmentStepper:
         itemsize = np.dtype(solver.np_real).itemsize
         self.per_chunk = max(1, int(LOSS_READ_BYTES // max(1, 2 * n * 3 * itemsize)))
 
-    def run_block(self, block: range, applied: np.ndarray, progress=None, phase: str = "forward", b: int = 0):
+    def run_block(self, block: range, applied: np.ndarray, emit_on=None, progress=None, phase: str = "forward",
+                  b: int = 0):
         sub = self.solver.substeps
-        self.solver.state.write_twists(applied, sub)
+        state = self.solver.state
+        state.write_twists(applied, sub)
+        model = self.solver.model
+        if model.has_emitters:  # the block's emission, from slot 0's, into every slot (emitters.schedule)
+            on = np.ones((len(block), model.n_emitters), dtype=bool) if emit_on is None else emit_on
+            counts, times, _ = schedule(model.emitter_specs, *state.read_emission(0), on, sub, model.dt)
+            state.write_emission(0, counts, times)
+            self.counts = counts
         substep = self.solver.substep if self.keep(b) else self.solver.substep_no_store
         for j, g in enumerate(block):
             for i in range(sub):
@@ -109,10 +124,14 @@ class SegmentStepper:
         steps = list(steps)
         for i in range(0, len(steps), self.per_chunk):
             chunk = steps[i:i + self.per_chunk]
-            x, v, tp, tR = self.solver.state.read_steps([(g - block.start + 1) * sub for g in chunk])
+            slots = [(g - block.start + 1) * sub for g in chunk]
+            x, v, tp, tR = self.solver.state.read_steps(slots)
             for j, g in enumerate(chunk):
                 k = step_offset + g + 1
-                yield g, StepState(k, k * self.dt, x[j].astype(np.float64), v[j].astype(np.float64), tp[j], tR[j])
+                active = active_rows(self.solver.model, self.counts[slots[j]]) if self.solver.model.has_emitters \
+                    else None
+                yield g, StepState(k, k * self.dt, x[j].astype(np.float64), v[j].astype(np.float64), tp[j], tR[j],
+                                   active)
 
     def check(self, block: range):
         fields, particle = self.solver.state.nonfinite(len(block) * self.solver.substeps)
@@ -120,9 +139,20 @@ class SegmentStepper:
             self.on_nonfinite(fields, particle, block[-1] + 1)
 
 
-def run(stepper, applied: np.ndarray, losses: dict, *, step_offset: int = 0, horizon: int | None = None,
-        want_grad=None, on_block=None, progress=None, phase: str = "forward", grads: dict | None = None):
-    """Run len(applied) steps of `stepper` with the (clipped) twists `applied` (N, n_tools, 6).
+def active_rows(model, emitted) -> np.ndarray | None:
+    """(N,) bools: the particles that take part (every body's, and the pool particles emitted so far), or None
+    in a scene without emitters."""
+    if not model.has_emitters:
+        return None
+    spec = model.spec
+    return (spec.emitter_of < 0) | (spec.pool_index < np.asarray(emitted)[np.maximum(spec.emitter_of, 0)])
+
+
+def run(stepper, applied: np.ndarray, losses: dict, *, emit_on=None, step_offset: int = 0,
+        horizon: int | None = None, want_grad=None, on_block=None, progress=None, phase: str = "forward",
+        grads: dict | None = None):
+    """Run len(applied) steps of `stepper` with the (clipped) twists `applied` (N, n_tools, 6) and the emitters
+    switched on per step by `emit_on` (N, n_emitters) bools (None: always on).
 
     losses: {name: Loss}, each evaluated after the steps it names (StepState.step = step_offset + k after the
         rollout's k-th step, horizon `horizon`, default step_offset + N).
@@ -146,13 +176,14 @@ def run(stepper, applied: np.ndarray, losses: dict, *, step_offset: int = 0, hor
         block = range(b * K, min(n, (b + 1) * K))
         if on_block:
             on_block(b, block)
-        stepper.run_block(block, applied[block.start:block.stop], tick, phase, b)
+        stepper.run_block(block, applied[block.start:block.stop],
+                          None if emit_on is None else emit_on[block.start:block.stop], tick, phase, b)
         active = [g for g in block if any(loss.active(step_offset + g + 1, horizon) for loss in losses.values())]
         for g, state in stepper.states(block, active, step_offset):
             for name, loss in losses.items():
                 keep = bool(want_grad and want_grad(name, g))
                 values[name][g], gradient = loss(state, horizon, grad=keep)
                 if keep:
-                    grads[g] = gradient
+                    grads[g] = state.only_active(gradient)
         stepper.check(block)
     return values, grads

@@ -27,6 +27,7 @@ import taichi as ti
 from fluidlab_core.engine import grid, transfer
 from fluidlab_core.engine.rigid import RigidProjection
 from fluidlab_core.engine.control import Control
+from fluidlab_core.engine.emitters import schedule
 from fluidlab_core.engine.state import StateBuffer
 from fluidlab_core.engine.tools import advance_pose
 
@@ -66,10 +67,12 @@ class Solver:
 
     @ti.func
     def mpm_substep(self, state: ti.template(), s_in, s_out, keep: ti.template(), twist: ti.template(),
-                host_twist: ti.template()):
+                    host_twist: ti.template(), emit: ti.template(), host_emit: ti.template()):
         """One substep from slot s_in to slot s_out (see the module docstring), called at the top of a kernel (its
         loops are the kernel's parallel loops). With `host_twist`, the tools' twists come from the kernel's
-        array `twist` (n_tools, 6); with `keep`, the differentiable solver's stores are filled. Each solver's
+        array `twist` (n_tools, 6); with `host_emit`, the emission of the substep from the array `emit`
+        (n_emitters, 3: emitted before, emitted after, on-time after; emitters.schedule), otherwise from the
+        state's slots s_in and s_out; with `keep`, the differentiable solver's stores are filled. Each solver's
         kernel takes only the arguments it needs: at small sizes Taichi's handling of a launch's arguments (an
         array, a template) costs as much as a tenth of the substep."""
         # P2G (and the tools' twists from the host: nothing reads them before the grid update; a serial part of
@@ -106,38 +109,95 @@ class Solver:
             self.grid_v[I] = vn
             if ti.static(keep):
                 self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
-        # G2P (and the tools' advance: nothing reads their poses after the grid update)
+        # G2P (and the tools' advance: nothing reads their poses after the grid update, except a nozzle that a
+        # tool carries, whose particles then read slot s_in: the advance waits for the end of the loop)
         for p in range(self.n_particles):
-            if p == 0:
-                for k in ti.static(range(self.model.n_tools)):
-                    self._advance_tool(state, s_in, s_out, k)
-            new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
-            xp = state.x[s_in, p] + self.model.dt * new_v
-            if ti.static(keep):
-                self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
-                if ti.static(self.has_rigid):
-                    self.store_C_pre[s_in, p] = new_C
-            xp, new_v = grid.project(self.model, xp, new_v)
-            self._store_g2p(state, s_out, p, xp, new_v, new_C)
+            if ti.static(not self.model.emitters_on_tools):
+                if p == 0:
+                    for k in ti.static(range(self.model.n_tools)):
+                        self._advance_tool(state, s_in, s_out, k)
+            if ti.static(self.model.has_emitters):
+                self._g2p_emitting(state, s_in, s_out, keep, p, emit, host_emit)
+            else:
+                self._g2p(state, s_in, s_out, keep, p)
+        if ti.static(self.model.emitters_on_tools or (self.model.has_emitters and host_emit)):
+            ti.loop_config(serialize=True)
+            for _ in range(1):
+                if ti.static(self.model.emitters_on_tools):
+                    for k in ti.static(range(self.model.n_tools)):
+                        self._advance_tool(state, s_in, s_out, k)
+                if ti.static(host_emit):  # the fast solver's slot keeps its emission up to date
+                    for e in ti.static(range(self.model.n_emitters)):
+                        state.emit_n[e, s_out] = ti.cast(emit[e, 1], ti.i32)
+                        state.emit_t[e, s_out] = emit[e, 2]
+
+    @ti.func
+    def _g2p(self, state: ti.template(), s_in, s_out, keep: ti.template(), p):
+        """G2P of particle p: gather, advection, projection out of statics and walls."""
+        new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
+        xp = state.x[s_in, p] + self.model.dt * new_v
+        if ti.static(keep):
+            self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
+            if ti.static(self.has_rigid):
+                self.store_C_pre[s_in, p] = new_C
+        xp, new_v = grid.project(self.model, xp, new_v)
+        self._store_g2p(state, s_out, p, xp, new_v, new_C)
+
+    @ti.func
+    def emission(self, state: ti.template(), s_in, s_out, e, emit: ti.template(), host_emit: ti.template()):
+        """(emitted before the substep, emitted after it, on-time after it) of emitter e ≥ 0."""
+        before, after, t_after = 0, 0, ti.cast(0.0, ti.f64)
+        if ti.static(host_emit):
+            before, after, t_after = ti.cast(emit[e, 0], ti.i32), ti.cast(emit[e, 1], ti.i32), emit[e, 2]
+        else:
+            before, after, t_after = state.emit_n[e, s_in], state.emit_n[e, s_out], state.emit_t[e, s_out]
+        return before, after, t_after
+
+    @ti.func
+    def _g2p_emitting(self, state: ti.template(), s_in, s_out, keep: ti.template(), p, emit: ti.template(),
+                      host_emit: ti.template()):
+        """G2P in a scene with emitters: particles already emitted as usual; pool particles born in this substep
+        leave their nozzle (emitters.py); the others stay parked."""
+        em = self.model.emitters
+        e = em.emitter[p]
+        if e < 0:
+            self._g2p(state, s_in, s_out, keep, p)
+        else:
+            before, after, t_after = self.emission(state, s_in, s_out, e, emit, host_emit)
+            j = em.pool_index[p]
+            if j < before:
+                self._g2p(state, s_in, s_out, keep, p)
+            elif j < after:
+                xp, vp = em.newborn(self.model, state, s_in, p, t_after)
+                self._store_g2p(state, s_out, p, xp, vp, ti.Matrix.zero(float, 3, 3))
+            else:
+                self._store_g2p(state, s_out, p, state.x[s_in, p], state.v[s_in, p], ti.Matrix.zero(float, 3, 3))
 
     @ti.func
     def _p2g(self, state: ti.template(), s_in, s_out, keep: ti.template(), c, p):
         """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
         atomically into the grid)."""
+        active = True
+        if ti.static(self.model.has_emitters):
+            active = self.model.emitters.active(state, s_in, p)
         Cp = state.C[s_in, p]
-        Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, state.F[s_in, p]), Cp)
+        Fp = ti.Matrix.identity(float, 3)
+        tau = ti.Matrix.zero(float, 3, 3)
+        if active:
+            Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, state.F[s_in, p]), Cp)
         if ti.static(self.has_rigid):
             self.F_model[p] = Fp
         else:
             state.F[s_out, p] = Fp
         if ti.static(keep):
             self.store_tau[s_in, p] = tau
-        if ti.static(self.private):
-            transfer.scatter(self.model, self.copies_m, self.copies_mv, c, True, state.x[s_in, p], state.v[s_in, p], Cp,
-                             tau, p)
-        else:
-            transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p], state.v[s_in, p], Cp,
-                             tau, p)
+        if active:  # a pool particle not yet emitted adds nothing to the grid (F = I, τ = 0 until it leaves)
+            if ti.static(self.private):
+                transfer.scatter(self.model, self.copies_m, self.copies_mv, c, True, state.x[s_in, p],
+                                 state.v[s_in, p], Cp, tau, p)
+            else:
+                transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p],
+                                 state.v[s_in, p], Cp, tau, p)
 
     @ti.func
     def _twists_from_host(self, state: ti.template(), s, twist: ti.template()):
@@ -169,23 +229,39 @@ class FastSolver(Solver):
     @ti.kernel
     def substep_kernel(self, state: ti.template(), twist: ti.types.ndarray()):
         """One substep in place, with the tools' twists (n_tools, 6) from the host."""
-        self.mpm_substep(state, 0, 0, False, twist, True)
+        self.mpm_substep(state, 0, 0, False, twist, True, 0, False)
 
     @ti.kernel
     def substep_kernel_without_tools(self, state: ti.template()):
         """One substep in place, in a scene without tools (no array argument to handle)."""
-        self.mpm_substep(state, 0, 0, False, 0, False)
+        self.mpm_substep(state, 0, 0, False, 0, False, 0, False)
+
+    @ti.kernel
+    def substep_kernel_emitting(self, state: ti.template(), twist: ti.types.ndarray(), emit: ti.types.ndarray()):
+        """One substep in place in a scene with emitters: the tools' twists (n_tools, 6, unused without tools)
+        and the substep's emission (n_emitters, 3) from the host."""
+        self.mpm_substep(state, 0, 0, False, twist, ti.static(self.model.n_tools > 0), emit, True)
 
     def step(self, state: StateBuffer, control: Control):
         """Advance `state` in place by one step (the model's substeps) with the tools' twists of `control`
-        (already clipped to the workspaces: tools.plan)."""
-        for _ in range(self.model.substeps):
-            if self.model.n_tools:
+        (already clipped to the workspaces: tools.plan) and its emitters switched on or off."""
+        model = self.model
+        if model.has_emitters:
+            on = control.emitting(model.n_emitters)[None]
+            counts, times, _ = schedule(model.emitter_specs, *state.emission, on, model.substeps, model.dt)
+            twist = control.twists if model.n_tools else np.zeros((1, 6))
+        for i in range(model.substeps):
+            if model.has_emitters:
+                emit = np.stack([counts[i], counts[i + 1], times[i + 1]], axis=1).astype(np.float64)
+                self.substep_kernel_emitting(state, twist, emit)
+            elif model.n_tools:
                 self.substep_kernel(state, control.twists)
             else:
                 self.substep_kernel_without_tools(state)
             if self.rigid is not None:
                 self.rigid.forward(state, 0)
+        if model.has_emitters:
+            state.emission = (counts[-1].copy(), times[-1].copy())
 
     @ti.kernel
     def _stresses(self, state: ti.template(), out: ti.types.ndarray()):

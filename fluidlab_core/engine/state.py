@@ -9,6 +9,8 @@ Two forms of the same thing:
       x[s, p], v[s, p], C[s, p], F[s, p]           particle p at slot s
       tool_p[k, s], tool_R[k, s]                   tool k's pose at slot s
       tool_v[k, s], tool_w[k, s]                   the twist tool k holds over substep s
+      emit_n[e, s], emit_t[e, s]                   emitter e's particles emitted, and its on-time (s), at
+                                                   slot s (emitters.py; written by the host's schedule)
   The fast solver steps a buffer of one slot in place; the differentiable solver keeps one slot per substep
   of a checkpoint segment (slot s + 1 is substep s's result) and the gradients beside them (`needs_grad`).
   Both run the same substep (solver.py): the two storages differ only in the length of the time axis.
@@ -38,8 +40,9 @@ GRAD_FIELD_NAMES = ("positions (x)", "velocities (v)", "affine velocities (C)", 
 class State:
     """A snapshot of the simulation: positions x (N, 3) in m, velocities v (N, 3) in m/s, affine velocities
     C (N, 3, 3) in 1/s, deformation gradients F (N, 3, 3), tool origins (T, 3) in m and rotations (T, 3, 3)
-    (tool frame to world), and the number of steps since the start. Particle arrays are in the solver's
-    precision, tool poses in float64."""
+    (tool frame to world), the number of steps since the start, and per emitter the particles it has emitted
+    (E,) and its on-time (E,) in s. Particle arrays are in the solver's precision (every row, emitted or not),
+    tool poses and on-times in float64."""
 
     x: np.ndarray
     v: np.ndarray
@@ -48,6 +51,8 @@ class State:
     tool_position: np.ndarray
     tool_rotation: np.ndarray
     step: int = 0
+    emitted: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    emit_time: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     PARTICLE_FIELDS = ("x", "v", "C", "F")
 
@@ -77,7 +82,7 @@ class State:
         """Names of the particle fields holding a NaN or infinity."""
         return [k for k in self.PARTICLE_FIELDS if not np.all(np.isfinite(getattr(self, k)))]
 
-    def check_shapes(self, n_particles: int, n_tools: int):
+    def check_shapes(self, n_particles: int, n_tools: int, n_emitters: int = 0):
         """Refuse a state of another scene, naming the field."""
         for key in self.PARTICLE_FIELDS:
             arr = np.asarray(getattr(self, key))
@@ -92,14 +97,20 @@ class State:
             if arr.shape != want:
                 raise ValueError(f"state.{key} has shape {arr.shape}, this scene has {n_tools} tool(s): expected "
                                  f"{want}")
+        for key in ("emitted", "emit_time"):
+            arr = np.asarray(getattr(self, key))
+            if arr.shape != (n_emitters,):
+                raise ValueError(f"state.{key} has shape {arr.shape}, this scene has {n_emitters} emitter(s)")
 
 
 @ti.data_oriented
 class StateBuffer:
     """Particle and tool state at `n_slots` time slots on the device (see the module docstring)."""
 
-    def __init__(self, n_particles: int, n_tools: int, n_slots: int, real, pose_real=None, needs_grad=False):
+    def __init__(self, n_particles: int, n_tools: int, n_slots: int, real, pose_real=None, needs_grad=False,
+                 n_emitters: int = 0):
         self.n_particles, self.n_tools, self.n_slots = int(n_particles), int(n_tools), int(n_slots)
+        self.n_emitters = int(n_emitters)
         self.real = real
         self.pose_real = pose_real or real
         self.needs_grad = bool(needs_grad)
@@ -124,6 +135,12 @@ class StateBuffer:
         else:
             self.tool_p_real, self.tool_R_real = self.tool_p, self.tool_R
             self.tool_v_real, self.tool_w_real = self.tool_v, self.tool_w
+        # emission (emitters.py): particles emitted and on-time per emitter and slot; for a one-slot buffer the
+        # host keeps slot 0's values too (`emission`), which the fast solver's schedule starts from
+        ne = max(self.n_emitters, 1)
+        self.emit_n = ti.field(ti.i32, shape=(ne, self.n_slots))
+        self.emit_t = ti.field(ti.f64, shape=(ne, self.n_slots))
+        self.emission = (np.zeros(self.n_emitters, dtype=np.int64), np.zeros(self.n_emitters))
         # NaN / infinity watch: which fields (bits 1 x, 2 v, 4 C, 8 F, 16 tools) and the first particle found
         self.bad = ti.field(ti.i32, shape=())
         self.bad_particle = ti.field(ti.i32, shape=())
@@ -198,13 +215,19 @@ class StateBuffer:
             self.tool_w_real[k, s] = ti.cast(self.tool_w[k, s], self.real)
 
     def write(self, s: int, state: State):
-        """Put a State's particles and tool poses into slot s."""
+        """Put a State's particles, tool poses and emission into slot s."""
         r = self.np_real
         self._write_particles(s, *(np.ascontiguousarray(getattr(state, k), dtype=r) for k in State.PARTICLE_FIELDS))
         if self.n_tools:
             pr = self.np_pose_real
             self._write_tools(s, np.ascontiguousarray(state.tool_position, dtype=pr),
                               np.ascontiguousarray(state.tool_rotation, dtype=pr))
+        if self.n_emitters:
+            n = np.asarray(state.emitted, dtype=np.int64)
+            t = np.asarray(state.emit_time, dtype=np.float64)
+            self.write_emission(s, n[None], t[None])
+            if s == 0:
+                self.emission = (n.copy(), t.copy())
 
     def read(self, s: int, grad: bool = False, step: int = 0) -> State:
         """Slot s (or its gradient) as a State; tool poses in float64."""
@@ -213,7 +236,28 @@ class StateBuffer:
         C, F = np.zeros((n, 3, 3), r), np.zeros((n, 3, 3), r)
         self._read_particles(s, x, v, C, F, bool(grad))
         tp, tR = self.read_tools(s, grad)
-        return State(x, v, C, F, tp, tR, step)
+        emitted, emit_time = self.read_emission(s)
+        return State(x, v, C, F, tp, tR, step, emitted, emit_time)
+
+    # --- emission (emitters.py) ---------------------------------------------------------------------------
+    @ti.kernel
+    def _write_emission(self, s0: ti.i32, n: ti.types.ndarray(), t: ti.types.ndarray()):
+        for j, e in ti.ndrange(n.shape[0], self.n_emitters):
+            self.emit_n[e, s0 + j] = ti.cast(n[j, e], ti.i32)
+            self.emit_t[e, s0 + j] = t[j, e]
+
+    def write_emission(self, s0: int, counts: np.ndarray, times: np.ndarray):
+        """Emitted particles (K, E) and on-times (K, E) into slots s0 … s0 + K − 1 (one launch)."""
+        if self.n_emitters and len(counts):
+            self._write_emission(s0, np.ascontiguousarray(counts, dtype=np.int64),
+                                 np.ascontiguousarray(times, dtype=np.float64))
+
+    def read_emission(self, s: int):
+        """(emitted (E,) int64, on-times (E,) float64) at slot s."""
+        if not self.n_emitters:
+            return np.zeros(0, dtype=np.int64), np.zeros(0)
+        return (self.emit_n.to_numpy()[: self.n_emitters, s].astype(np.int64),
+                self.emit_t.to_numpy()[: self.n_emitters, s].astype(np.float64))
 
     def read_tools(self, s: int, grad: bool = False):
         """(tool origins (T, 3), rotations (T, 3, 3)) of slot s (or their gradients), float64."""
@@ -252,6 +296,9 @@ class StateBuffer:
         for k in range(self.n_tools):
             self.tool_p[k, dst] = self.tool_p[k, src]
             self.tool_R[k, dst] = self.tool_R[k, src]
+        for e in range(self.n_emitters):
+            self.emit_n[e, dst] = self.emit_n[e, src]
+            self.emit_t[e, dst] = self.emit_t[e, src]
 
     def copy_slot(self, src: int, dst: int):
         self._copy_slot(src, dst)

@@ -168,3 +168,20 @@ def plan(specs, position, twists: np.ndarray, dt: float, substeps: int):
         for _ in range(substeps):
             p += applied[g, :, :3] * sub_dt
     return applied, clipped
+
+
+def plan_poses(specs, position, rotation, applied: np.ndarray, dt: float):
+    """The tools' poses at the step boundaries of a planned sequence (after tools.plan): origins (N + 1, T, 3)
+    and rotations (N + 1, T, 3, 3), float64, from `position` (T, 3) and `rotation` (T, 3, 3). A twist held over
+    a step advances R by exp([ω]× dt) whatever the number of substeps."""
+    n, t = len(applied), len(specs)
+    pos = np.zeros((n + 1, t, 3))
+    rot = np.zeros((n + 1, t, 3, 3))
+    if not t:
+        return pos, rot
+    pos[0] = np.asarray(position, dtype=np.float64).reshape(t, 3)
+    rot[0] = np.asarray(rotation, dtype=np.float64).reshape(t, 3, 3)
+    for g in range(n):
+        pos[g + 1] = pos[g] + applied[g, :, :3] * dt
+        rot[g + 1] = Rotation.from_rotvec(applied[g, :, 3:] * dt).as_matrix() @ rot[g]
+    return pos, rot

@@ -222,7 +222,8 @@ class Task:
     def observe(self, sim, tool_twist=None) -> np.ndarray:
         """Downsampled positions (m) and velocities (m/s) of each observed body, then the tool pose (x, y, z,
         qx, qy, qz, qw) and twist (m/s, rad/s); float32. The same particles are observed every step (a fixed
-        subset per body, chosen with a fixed seed)."""
+        subset per body, chosen with a fixed seed); of a body that an emitter is still adding, the rows of
+        particles not yet emitted are zero."""
         if self._observe_index is None:
             rng = np.random.default_rng(12345)
             self._observe_index = {}
@@ -233,7 +234,10 @@ class Task:
                 if m < self.config.particles_per_body:  # repeat to keep the documented shape
                     idx = np.resize(idx, self.config.particles_per_body)
                 self._observe_index[body] = idx
-        x, v = sim.positions(), sim.velocities()
+        x, v = sim.state.x.to_numpy()[0].astype(np.float64), sim.state.v.to_numpy()[0].astype(np.float64)
+        active = sim.active_rows()
+        if active is not None:  # particles not yet emitted are observed as zero rows
+            x[~active], v[~active] = 0.0, 0.0
         parts = []
         for body in self.observed_bodies:
             idx = self._observe_index[body]

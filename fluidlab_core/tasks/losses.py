@@ -41,8 +41,11 @@ class ChamferToGoal(Loss):
         self.particles = particles
 
     def evaluate(self, state, grad):
-        x = state.x[self.particles]
+        rows = state.select(self.particles)  # a body still being emitted: the particles that have left
         g = self.goal[state.step]
+        if len(rows) == 0 or len(g) == 0:
+            return 0.0, None
+        x = state.x[rows]
         d_x, nn = self.trees[state.step].query(x)  # nearest goal point of each particle
         d_g, nn_rev = cKDTree(x).query(g)  # nearest particle of each goal point
         n, m = len(x), len(g)
@@ -52,7 +55,7 @@ class ChamferToGoal(Loss):
         gx = (2.0 / n) * (x - g[nn])
         np.add.at(gx, nn_rev, (2.0 / m) * (x[nn_rev] - g))
         full = np.zeros_like(state.x)
-        full[self.particles] = gx
+        full[rows] = gx
         return value, {"x": full}
 
 
@@ -64,13 +67,16 @@ class NegativeSpread(Loss):
         self.particles = particles
 
     def evaluate(self, state, grad):
-        x = state.x[self.particles]
+        rows = state.select(self.particles)
+        if len(rows) == 0:
+            return 0.0, None
+        x = state.x[rows]
         r = x - x.mean(axis=0)
         value = -float(np.mean(np.sum(r * r, axis=1)))
         if not grad:
             return value, None
         full = np.zeros_like(state.x)
-        full[self.particles] = (-2.0 / len(x)) * r
+        full[rows] = (-2.0 / len(x)) * r
         return value, {"x": full}
 
 
@@ -86,7 +92,10 @@ class ToolAttraction(Loss):
         self.values: dict[int, float] = {}
 
     def evaluate(self, state, grad):
-        centroid = state.x[self.particles].mean(axis=0)
+        rows = state.select(self.particles)
+        if len(rows) == 0:
+            return 0.0, None
+        centroid = state.x[rows].mean(axis=0)
         d = state.tool_position[self.tool] - centroid
         d[2] = 0.0
         value = float(d @ d)
