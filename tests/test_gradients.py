@@ -13,7 +13,6 @@ The gradient bugs met while writing the backward pass (a term missing or wrong) 
 import numpy as np
 import pytest
 
-import fluidlab_core as fl
 from tests import conftest
 from fluidlab_core import losses
 from fluidlab_core import materials as M
