@@ -22,7 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-TASKS = ("LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard")
+
+
+def registered_tasks() -> list[str]:
+    """Every registered task (the registry's order): a new task joins the bench without a change here."""
+    from fluidlab_core import tasks
+
+    return tasks.names()
 METHODS = ("dp", "dp-h", "cma-es")
 
 
@@ -30,7 +36,7 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "c
     from fluidlab_core import tasks
 
     horizon = tasks.make(task, size).horizon
-    name = f"{method}_seed{seed}_{size}"
+    name = f"{task}_{method}_seed{seed}_{size}"  # names are unique across the folder (trajectory_store)
     env = dict(os.environ, FLUIDLAB_CPU_THREADS=os.environ.get("FLUIDLAB_CPU_THREADS", "1"))
     cmd = [sys.executable, "-m", "fluidlab_core.cli", "optimise", task, "--method", method, "--seed", str(seed),
            "--size", size, "--budget", str(budget_rollouts * horizon), "--root", str(out / "trajectories"),
@@ -46,13 +52,13 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "c
     return rep
 
 
-def table(runs, size, rollouts) -> str:
+def table(runs, size, rollouts, names=None) -> str:
     lines = [f"Final loss on the reference physics (hard contact), {size} tasks, float32 CPU, budget {rollouts} "
              f"rollouts of the horizon per run, mean ± std over seeds (n = seeds that finished); lower is better. "
              f"'zero-action' is the loss of leaving the tool still; 'wall' includes the first run's compilation.",
              f"{'task':<15} {'method':<7} {'final loss (mean ± std)':>28} {'n':>2} {'zero-action loss':>17} "
              f"{'wall s/run':>10}"]
-    for task in TASKS:
+    for task in names or sorted({r["task"] for r in runs}, key=lambda t: registered_tasks().index(t)):
         for method in METHODS:
             ok = [r for r in runs if r["task"] == task and r["method"] == method and "final_loss" in r]
             if not ok:
@@ -65,13 +71,13 @@ def table(runs, size, rollouts) -> str:
     return "\n".join(lines)
 
 
-def zero_losses(size, arch: str = "cpu") -> dict:
+def zero_losses(size, arch: str = "cpu", names=None) -> dict:
     import fluidlab_core
     from fluidlab_core import tasks
 
     fluidlab_core.init(arch=arch, precision="f32")
     out = {}
-    for name in TASKS:
+    for name in names or registered_tasks():
         t = tasks.make(name, size)
         out[name] = t.evaluate(np.zeros((t.horizon, t.n_actions)), rewards=False)["loss"]
     return out
@@ -83,16 +89,17 @@ def main():
     ap.add_argument("--rollouts", type=int, default=15)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--tasks", nargs="+", default=list(TASKS))
+    ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--out", default="out/bench_tasks")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
     ap.add_argument("--table-only", action="store_true", help="remake the table from DIR/runs.jsonl")
     args = ap.parse_args()
+    args.tasks = args.tasks or registered_tasks()
     out = Path(args.out)
     if args.table_only:
         runs = [json.loads(line) for line in open(out / "runs.jsonl")]
-        zero = zero_losses(args.size, args.arch)
+        zero = zero_losses(args.size, args.arch, args.tasks)
         for r in runs:
             r["zero_loss"] = zero.get(r["task"], float("nan"))
         text = table(runs, args.size, args.rollouts)
@@ -107,7 +114,7 @@ def main():
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         futures = {pool.submit(run_one, t, m, s, args.size, args.rollouts, out, args.arch): (t, m, s)
                    for t, m, s in jobs}
-        futures[pool.submit(zero_losses, args.size, args.arch)] = "zero"
+        futures[pool.submit(zero_losses, args.size, args.arch, args.tasks)] = "zero"
         zero = {}
         for fut in as_completed(futures):
             if futures[fut] == "zero":

@@ -204,15 +204,22 @@ _MU_STIFF = 416.67 * STRESS_UNIT_PA
 
 WATER = NewtonianLiquid("water", density=1000.0, bulk_modulus=_LAMBDA, color=(0.25, 0.55, 0.95))
 COFFEE = NewtonianLiquid("coffee", density=1000.0, bulk_modulus=_LAMBDA, color=(0.36, 0.22, 0.12))
-# The paper's milk is half as dense as coffee (ρ = 0.5), which is what makes it float for latte art.
-MILK = NewtonianLiquid("milk", density=500.0, bulk_modulus=_LAMBDA, color=(0.96, 0.96, 0.92))
+# The paper's milk has the density of water and coffee (ρ = 1.0).
+MILK = NewtonianLiquid("milk", density=1000.0, bulk_modulus=_LAMBDA, color=(0.96, 0.96, 0.92))
+# The project's own: a milk foam half as dense as coffee, which floats (LatteArtStir's milk layer needs to float
+# to keep a pattern on the surface; the paper's milk, as dense as coffee, would sink into it).
+MILK_FOAM = NewtonianLiquid("milk_foam", density=500.0, bulk_modulus=_LAMBDA, color=(0.98, 0.97, 0.93))
 # The paper's viscous liquids keep μ = 200 in a liquid model with F reset every 2e-4 s substep, i.e. an
 # effective viscosity η ≈ μ·dt = 0.04 paper units = 40 Pa·s; we state it as a real viscosity instead.
 FROTHED_MILK = ViscousLiquid("frothed_milk", density=500.0, bulk_modulus=_LAMBDA, viscosity_pas=40.0,
                              color=(0.98, 0.94, 0.85))
-# The paper's density-contrast demo liquids (ρ = 1 and 3), used for Rayleigh–Taylor.
-LIGHT_LIQUID = NewtonianLiquid("light_liquid", density=1000.0, bulk_modulus=_LAMBDA, color=(0.95, 0.75, 0.2))
-HEAVY_LIQUID = NewtonianLiquid("heavy_liquid", density=3000.0, bulk_modulus=_LAMBDA, color=(0.6, 0.15, 0.55))
+# The paper's light and heavy liquids (ρ = 0.8 and 1.5), those of its Fine Grained Pouring task.
+LIGHT_LIQUID = NewtonianLiquid("light_liquid", density=800.0, bulk_modulus=_LAMBDA, color=(0.95, 0.75, 0.2))
+HEAVY_LIQUID = NewtonianLiquid("heavy_liquid", density=1500.0, bulk_modulus=_LAMBDA, color=(0.6, 0.15, 0.55))
+# The project's own pair for the Rayleigh–Taylor validation (ρ = 1 and 3): an Atwood number of 0.5 grows the
+# interface fast enough to measure in a short run (tests/test_physics_solids.py).
+RT_LIGHT = NewtonianLiquid("rt_light", density=1000.0, bulk_modulus=_LAMBDA, color=(0.95, 0.75, 0.2))
+RT_HEAVY = NewtonianLiquid("rt_heavy", density=3000.0, bulk_modulus=_LAMBDA, color=(0.6, 0.15, 0.55))
 # Paper: ρ = 0.5, μ = 416.67 with a yield of about 2.5e-3 strain, i.e. a yield stress ≈ 2μ·ε ≈ 2 kPa.
 ICE_CREAM = VonMisesPlastic("ice_cream", density=500.0, shear_modulus=_MU_STIFF, lame_lambda=_LAMBDA,
                             yield_stress=2.0e3, color=(0.98, 0.88, 0.9))
@@ -228,7 +235,8 @@ RIGID_LIGHT = Rigid("rigid_light", density=500.0, bulk_modulus=_LAMBDA, color=(0
 RIGID_HEAVY = Rigid("rigid_heavy", density=10000.0, bulk_modulus=_LAMBDA, color=(0.4, 0.4, 0.45))
 
 CATALOGUE: dict[str, Material] = {m.name: m for m in (
-    WATER, MILK, COFFEE, FROTHED_MILK, LIGHT_LIQUID, HEAVY_LIQUID, ICE_CREAM, ELASTIC, PLASTIC,
+    WATER, MILK, MILK_FOAM, COFFEE, FROTHED_MILK, LIGHT_LIQUID, HEAVY_LIQUID, RT_LIGHT, RT_HEAVY, ICE_CREAM,
+    ELASTIC, PLASTIC,
     PLASTIC_VON_MISES, RIGID, RIGID_LIGHT, RIGID_HEAVY)}
 
 

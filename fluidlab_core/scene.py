@@ -124,7 +124,7 @@ class Scene:
         `Simulator.positions` and friends. A rigid material makes one rigid body per call."""
         if not isinstance(material, M.Material):
             raise TypeError(f"material must be a fluidlab_core.materials.Material, got {type(material).__name__}")
-        if isinstance(shape, (S.Cup, S.Tank)):
+        if isinstance(shape, S.CONTAINERS):
             raise ValueError(f"{type(shape).__name__} is a container: add it with add_static(), and fill its "
                              f"interior() with particles")
         name = name or f"{material.name}_{len(self.bodies)}"
@@ -167,14 +167,15 @@ class Scene:
 
     def add_tool(self, shape: S.Shape, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), name: str | None = None,
                  friction: float = 0.0, softness: float | None = None, action_mask=(1, 1, 1, 1, 1, 1),
-                 workspace=None, max_speed: float = 1.0):
+                 workspace=None, max_speed: float = 1.0, keep_out: bool = False):
         """A kinematic tool moved by `Simulator.step(action)` (see fluidlab_core.engine.tools).
 
         shape: its geometry in the tool's own frame (m); pose: initial (x, y, z, qx, qy, qz, qw) of the tool
         frame in the world; friction: Coulomb coefficient; softness: soft contact sharpness in 1/m (None:
         hard contact); action_mask: which of (vx, vy, vz, wx, wy, wz) the action drives; workspace:
         ((x, y, z), (x, y, z)) bounds on the tool position; max_speed: fastest tool point (m/s), for the
-        stability check."""
+        stability check; keep_out: after each substep put particles found inside the tool back on its surface
+        (for a tool that carries fluid: a glass, a cone; its walls must be 2 cells thick, as a static's)."""
         from fluidlab_core.engine.tools import ToolSpec
 
         if not isinstance(shape, S.Shape):
@@ -198,8 +199,12 @@ class Scene:
         name = name or f"tool_{len(self.tools)}"
         if any(t.name == name for t in self.tools):
             raise ValueError(f"a tool named {name!r} already exists")
+        if keep_out and isinstance(shape, S.CONTAINERS) and shape.thinnest_wall() < MIN_WALL_CELLS * self.dx - 1e-12:
+            raise ValueError(f"tool {name!r}: wall thickness {shape.thinnest_wall():.4g} m is under 2 grid cells "
+                             f"({MIN_WALL_CELLS * self.dx:.4g} m): the fluid it carries would leak through it")
         spec = ToolSpec(name, shape, pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:]), float(friction),
-                        None if softness is None else float(softness), mask, workspace, float(max_speed))
+                        None if softness is None else float(softness), mask, workspace, float(max_speed),
+                        keep_out=bool(keep_out))
         self.tools.append(spec)
         return spec
 
@@ -340,7 +345,7 @@ class Scene:
                 f"{why}. Use substeps >= {need} for dt = {self.dt:.3g} s (or a smaller dt, or a coarser grid).")
         min_wall = MIN_WALL_CELLS * self.dx
         for st in self.statics:
-            if isinstance(st.shape, (S.Cup, S.Tank)) and st.shape.thinnest_wall() < min_wall - 1e-12:
+            if isinstance(st.shape, S.CONTAINERS) and st.shape.thinnest_wall() < min_wall - 1e-12:
                 raise ValueError(
                     f"static {st.name!r}: wall thickness {st.shape.thinnest_wall():.4g} m is under 2 grid cells "
                     f"(2·Δx = {min_wall:.4g} m): liquid would leak through it. Make the wall at least "

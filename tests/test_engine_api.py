@@ -147,7 +147,9 @@ def test_catalogue_follows_the_paper_similarity():
     assert M.WATER.lam == pytest.approx(277.78 * 1000.0)
     assert M.ELASTIC.mu == pytest.approx(416.67 * 1000.0)
     assert M.WATER.mu == 0.0
-    assert M.MILK.density / M.COFFEE.density == pytest.approx(0.5)
+    assert M.MILK.density / M.COFFEE.density == pytest.approx(1.0)  # the paper's ρ = 1.0 for both
+    assert (M.LIGHT_LIQUID.density, M.HEAVY_LIQUID.density) == (800.0, 1500.0)  # the paper's 0.8 and 1.5
+    assert M.MILK_FOAM.density == 500.0  # the project's floating foam, under its own name
     mu, lam = M.lame_from_young(1000.0, 0.2)
     assert (mu, lam) == pytest.approx((416.667, 277.778), rel=1e-5)
     for name in ("water", "milk", "coffee", "frothed_milk", "ice_cream", "elastic", "plastic", "rigid",

@@ -185,12 +185,12 @@ def test_rayleigh_taylor_heavy_over_light_overturns():
     The same set-up with one density does not move: its seeded 'interface' keeps its amplitude within a cell,
     and the top layer only settles by its compression ρgH/λ (under 2 mm)."""
     k = 2 * np.pi / 0.1
-    atwood = (M.HEAVY_LIQUID.density - M.LIGHT_LIQUID.density) / (M.HEAVY_LIQUID.density + M.LIGHT_LIQUID.density)
+    atwood = (M.RT_HEAVY.density - M.RT_LIGHT.density) / (M.RT_HEAVY.density + M.RT_LIGHT.density)
     sigma_theory = np.sqrt(atwood * k * G)
-    times, spikes, drop_rt, dx = _two_layers(M.HEAVY_LIQUID, M.LIGHT_LIQUID)
+    times, spikes, drop_rt, dx = _two_layers(M.RT_HEAVY, M.RT_LIGHT)
     window = (times >= 0.04) & (times <= 0.2)
     sigma = np.polyfit(times[window], np.log(spikes[window]), 1)[0]
-    u_times, u_spikes, drop_uniform, _ = _two_layers(M.LIGHT_LIQUID, M.LIGHT_LIQUID)
+    u_times, u_spikes, drop_uniform, _ = _two_layers(M.RT_LIGHT, M.RT_LIGHT)
     report("rayleigh-taylor", dx_m=dx, growth_rate_per_s=sigma, theory_per_s=sigma_theory,
            ratio=sigma / sigma_theory, final_spike_m=spikes[-1], heavy_centroid_drop_m=drop_rt,
            uniform_spike_range_m=(round(u_spikes.min(), 4), round(u_spikes.max(), 4)),

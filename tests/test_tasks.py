@@ -11,9 +11,11 @@ import pytest
 from fluidlab_core import losses, tasks
 from fluidlab_core.optim import params as P
 from fluidlab_core.tasks import goals
-from fluidlab_core.tasks.losses import ChamferToGoal, NegativeSpread, ToolAttraction
+from fluidlab_core.tasks.losses import ChamferToGoal, MeanDistance, NegativeSpread, ToolAttraction
 
-TASKS = ["LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard"]
+TASKS = ["LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard", "LatteArtPour", "IceCreamStatic",
+         "IceCreamDynamic", "Transporting", "Pouring"]
+GOAL_TASKS = ["LatteArtStir", "LatteArtPour", "IceCreamStatic", "IceCreamDynamic"]  # scripted goal patterns
 
 
 def test_registry_names_and_unknown():
@@ -24,13 +26,30 @@ def test_registry_names_and_unknown():
         tasks.make("Mixing", size="huge")
 
 
+def test_registry_loads_once_for_threads_that_ask_together():
+    """The first use of the registry loads the built-in tasks; threads that ask meanwhile wait for it (they saw an
+    empty registry once: a benchmark's second job failed with "unknown task ...; known tasks: ")."""
+    import subprocess
+    import sys
+
+    code = ("import threading; from fluidlab_core import tasks; out = []; "
+            "ts = [threading.Thread(target=lambda: out.append(len(tasks.names()))) for _ in range(16)]; "
+            "[t.start() for t in ts]; [t.join() for t in ts]; print(sorted(set(out)))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == f"[{len(TASKS)}]", (run.stdout, run.stderr)
+
+
 @pytest.mark.parametrize("name", TASKS)
 def test_paper_size_follows_the_paper(name):
-    """The paper's configuration: 64³ grid, about 100k particles, 2 ms steps of at least 10 substeps."""
-    scene = tasks.make(name, "paper").scene()
+    """The paper's configuration: 64³ grid, 2 ms steps of at least 10 substeps, and about 100k particles in the
+    scenes that start full (Task.paper_particles: a scene filled by an emitter holds what its nozzle emits over
+    the horizon, the ice-cream cone about 12k; the pouring glass about 15k)."""
+    task = tasks.make(name, "paper")
+    scene = task.scene()
     n = sum(b.handle.count for b in scene.bodies)
     assert scene.grid_res == 64 and scene.dt == 2e-3 and scene.substeps >= 10
-    assert 60_000 <= n <= 140_000, n
+    lo, hi = task.paper_particles
+    assert lo <= n <= hi, n
 
 
 @pytest.mark.parametrize("name", TASKS)
@@ -46,16 +65,25 @@ def test_task_builds_resets_steps_and_conserves_mass(name):
     assert obs0.dtype == np.float32
     np.testing.assert_allclose(obs0[-13:-6], task.initial_tool_pose(), atol=1e-6)  # tool pose at the start
     for _ in range(20):
-        sim.step(task.twists(np.zeros((1, task.n_actions)))[0])
+        info = sim.step(task.twists(np.zeros((1, task.n_actions)))[0])
     x = sim.positions()
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(sim.velocities()))
-    assert len(x) == len(x0) and sim.masses().sum() == pytest.approx(mass0, rel=1e-12)
+    # mass: what the scene started with, plus what its emitters added (Q ρ t to within a row)
+    emitted = sum(r["mass"] for r in info.get("emitters", {}).values())
+    for spec in sim.emitter_specs:
+        expected = spec.rate * spec.material.density * 20 * task.dt
+        assert abs(info["emitters"][spec.name]["mass"] - expected) <= spec.row_volume * spec.material.density
+    assert sim.masses().sum() == pytest.approx(mass0 + emitted, rel=1e-6)  # float32 masses
     # nothing leaves the domain
     lo, hi = sim.scene.lower, sim.scene.upper
     assert np.all(x >= lo - 1e-9) and np.all(x <= hi + 1e-9)
     # with the tool at rest, a settled liquid moves little and its volume stays within weak compressibility
-    assert np.abs(x - x0).max() < 0.01
-    assert sim.volumes().sum() == pytest.approx(volume0, rel=0.03)
+    settled = [h for h in sim.handles.values() if h.emitter < 0]
+    if settled:
+        x_settled = np.concatenate([sim.positions(h) for h in settled])
+        x0_settled = np.concatenate([x0[h.slice] for h in settled])
+        assert np.abs(x_settled - x0_settled).max() < 0.01
+        assert sum(sim.volumes(h).sum() for h in settled) == pytest.approx(volume0, rel=0.03)
     loss = task.evaluate(np.zeros((task.horizon, task.n_actions)), rewards=True)
     assert np.isfinite(loss["loss"]) and np.isfinite(loss["return"]) and len(loss["rewards"]) == task.horizon
     # reset restores the start exactly
@@ -63,17 +91,22 @@ def test_task_builds_resets_steps_and_conserves_mass(name):
     np.testing.assert_array_equal(sim.positions(), x0)
 
 
-def test_latte_art_goal_is_reached_by_its_own_script():
-    """The goal file holds the scripted stroke's milk pattern: replaying the script gives a zero loss, standing
+@pytest.mark.parametrize("name", GOAL_TASKS)
+def test_goal_is_reached_by_its_own_script(name):
+    """The goal file holds the scripted motion's pattern: replaying the script gives a zero loss, standing
     still does not, and the goal file is what the loader checks."""
-    task = tasks.make("LatteArtStir", "small")
-    doc = goals.load("LatteArtStir", "small")
-    assert doc["points"].shape[1:] == (min(task.goal_points, task.body_slice("milk").stop -
-                                           task.body_slice("milk").start), 3)
-    assert list(doc["steps"]) == list(range(task.goal_every, task.horizon + 1, task.goal_every))
+    task = tasks.make(name, "small")
+    doc = goals.load(name, "small")
+    body = getattr(task, "emitted_body", "") or "milk"
+    count = task.body_slice(body).stop - task.body_slice(body).start
+    assert doc["points"].shape[1:] == (min(task.goal_points, count) if not task.scene().emitters
+                                       else task.goal_points, 3)
+    assert set(doc["steps"]) <= set(range(task.goal_every, task.horizon + 1, task.goal_every))
+    assert doc["steps"][-1] == task.horizon - task.horizon % task.goal_every
     scripted = task.evaluate(task.scripted_actions(), rewards=False)["loss"]
-    still = task.evaluate(np.zeros((task.horizon, 2)), rewards=False)["loss"]
-    assert scripted < 1e-3 * still and still > 1e-5
+    still = task.evaluate(np.zeros((task.horizon, task.n_actions)), rewards=False)["loss"]
+    report = f"{name}: scripted {scripted:.3g}, still {still:.3g}"
+    assert scripted < 1e-3 * still and still > 1e-6, report
 
 
 def test_goal_file_errors(tmp_path):
@@ -113,6 +146,14 @@ def test_task_loss_gradients_match_finite_differences():
     goal = rng.uniform(0.0, 0.05, (25, 3))
     _fd_check(ChamferToGoal({1: goal}, slice(10, 50)), x)
     _fd_check(NegativeSpread(slice(0, 40), steps="all"), x)
+    _fd_check(MeanDistance(np.array([0.02, 0.03, 0.01]), slice(0, 45), steps="all"), x)
+    # a body still being emitted: only the active rows count, and only they get a gradient
+    active = np.zeros(len(x), dtype=bool)
+    active[:30] = True
+    st = losses.StepState(1, 0.0, x, np.zeros_like(x), np.zeros((1, 3)), np.eye(3)[None], active)
+    value, grads = ChamferToGoal({1: goal}, slice(10, 50))(st, 1, grad=True)
+    assert value == pytest.approx(ChamferToGoal({1: goal}, slice(10, 30))(_state(x), 1)[0])
+    assert not np.any(grads["x"][30:])
     _fd_check(ToolAttraction(slice(5, 30)), x, key="tool_position", tool=np.array([[0.02, 0.01, 0.03]]))
     # the Chamfer distance of a set to itself is zero, and it grows with a shift
     assert ChamferToGoal({1: x[10:50]}, slice(10, 50))(_state(x), 1)[0] == pytest.approx(0.0, abs=1e-20)
@@ -162,7 +203,7 @@ def test_gymnasium_environments_pass_the_checker():
         assert obs.shape == env.observation_space.shape
         total, steps, done = 0.0, 0, False
         while not done:
-            obs, reward, terminated, truncated, info = env.step(np.zeros(2, dtype=np.float32))
+            obs, reward, terminated, truncated, info = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
             total += reward
             steps += 1
             done = terminated or truncated

@@ -258,7 +258,7 @@ class DiffSolver(Solver):
         the forward wrote, and its gradient goes straight to the gather's backward."""
         for p in range(self.n_particles):
             xp, vp = grid.project(self.model, self.store_x_pre[s, p] + self.x_pre[p],
-                                  self.store_v_pre[s, p] + self.v_pre[p])
+                                  self.store_v_pre[s, p] + self.v_pre[p], self.state, s)
             Cp = ti.Matrix.zero(float, 3, 3)
             if ti.static(self.has_rigid):
                 Cp = self.store_C_pre[s, p] + self.C_pre[p]

@@ -11,8 +11,8 @@ Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
     statics (statics.py), then each tool's contact law at the pose it holds during the substep (tools.py),
     then the domain walls: a node within half a cell of a wall loses its velocity into it (slip, optional
     Coulomb friction μ_w: the tangential speed shrinks by μ_w × the normal speed removed).
-After G2P, particles inside a static or past a wall are put back on its surface and lose their velocity into
-it (`project`).
+After G2P, particles inside a static, inside a tool that keeps them out, or past a wall are put back on its
+surface and lose their velocity into it (`project`).
 
 Every function takes the Model (model.py) as a template argument; both solvers call them.
 """
@@ -82,8 +82,13 @@ def clamp_to_walls(model: ti.template(), xp, vp):
 
 
 @ti.func
-def project(model: ti.template(), xp, vp):
-    """After G2P: out of the statics, then back from past the walls."""
+def project(model: ti.template(), xp, vp, state: ti.template(), s):
+    """After G2P: out of the statics, out of the tools that keep particles out (at their slot-s pose), then back
+    from past the walls."""
     for k in ti.static(range(len(model.colliders))):
         xp, vp = model.colliders[k].particle(xp, vp)
+    for k in ti.static(range(model.n_tools)):
+        if ti.static(model.tools[k].spec.keep_out):
+            xp, vp = model.tools[k].keep_out(xp, vp, state.tool_p_real[k, s], state.tool_R_real[k, s],
+                                             state.tool_v_real[k, s], state.tool_w_real[k, s])
     return clamp_to_walls(model, xp, vp)

@@ -140,6 +140,8 @@ class Model:
         self.n_emitters = len(self.emitter_specs)
         self.has_emitters = self.n_emitters > 0
         self.emitters_on_tools = any(e.tool is not None for e in self.emitter_specs)
+        # the fast solver advances the tools after G2P when G2P reads their slot (updated in place)
+        self.advance_after_g2p = self.emitters_on_tools or any(t.keep_out for t in spec.tools)
         self.emitters = None
         if self.has_emitters:
             self.emitters = EmitterModel(self.emitter_specs, spec.emitter_of, spec.pool_index, real, self._uploads)

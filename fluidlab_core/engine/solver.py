@@ -110,9 +110,10 @@ class Solver:
             if ti.static(keep):
                 self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
         # G2P (and the tools' advance: nothing reads their poses after the grid update, except a nozzle that a
-        # tool carries, whose particles then read slot s_in: the advance waits for the end of the loop)
+        # tool carries or a tool that keeps particles out, whose particles then read slot s_in: the advance then
+        # waits for the end of the loop)
         for p in range(self.n_particles):
-            if ti.static(not self.model.emitters_on_tools):
+            if ti.static(not self.model.advance_after_g2p):
                 if p == 0:
                     for k in ti.static(range(self.model.n_tools)):
                         self._advance_tool(state, s_in, s_out, k)
@@ -120,10 +121,10 @@ class Solver:
                 self._g2p_emitting(state, s_in, s_out, keep, p, emit, host_emit)
             else:
                 self._g2p(state, s_in, s_out, keep, p)
-        if ti.static(self.model.emitters_on_tools or (self.model.has_emitters and host_emit)):
+        if ti.static(self.model.advance_after_g2p or (self.model.has_emitters and host_emit)):
             ti.loop_config(serialize=True)
             for _ in range(1):
-                if ti.static(self.model.emitters_on_tools):
+                if ti.static(self.model.advance_after_g2p):
                     for k in ti.static(range(self.model.n_tools)):
                         self._advance_tool(state, s_in, s_out, k)
                 if ti.static(host_emit):  # the fast solver's slot keeps its emission up to date
@@ -140,7 +141,7 @@ class Solver:
             self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
             if ti.static(self.has_rigid):
                 self.store_C_pre[s_in, p] = new_C
-        xp, new_v = grid.project(self.model, xp, new_v)
+        xp, new_v = grid.project(self.model, xp, new_v, state, s_in)
         self._store_g2p(state, s_out, p, xp, new_v, new_C)
 
     @ti.func

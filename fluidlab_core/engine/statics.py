@@ -71,6 +71,32 @@ def _cylinder_sdf(center, radius, height):
     return sdf
 
 
+def _frustum_sdf(base, r1, r2, height):
+    """shapes.primitives.frustum_sdf in Taichi (the same formula)."""
+    half = 0.5 * height
+    k2r, k2z = r2 - r1, 2.0 * half
+    k2sq = k2r * k2r + k2z * k2z
+
+    @ti.func
+    def sdf(p):
+        d = p - ti.Vector(base)
+        q_r = ti.sqrt(d[0] * d[0] + d[1] * d[1] + NORM_EPS2)
+        q_z = d[2] - half
+        cap = r2
+        if q_z < 0.0:
+            cap = r1
+        ca_r = q_r - ti.min(q_r, cap)
+        ca_z = ti.abs(q_z) - half
+        t = ti.min(ti.max(((r2 - q_r) * k2r + (half - q_z) * k2z) / k2sq, 0.0), 1.0)
+        cb_r, cb_z = q_r - r2 + k2r * t, q_z - half + k2z * t
+        sign = 1.0
+        if cb_r < 0.0 and ca_z < 0.0:
+            sign = -1.0
+        return sign * ti.sqrt(ti.min(ca_r * ca_r + ca_z * ca_z, cb_r * cb_r + cb_z * cb_z) + NORM_EPS2)
+
+    return sdf
+
+
 def _difference(outer, hollow):
     @ti.func
     def sdf(p):
@@ -124,8 +150,10 @@ def sdf_func(shape, real, mesh_spacing: float, uploads=None):
         return _sphere_sdf(shape.center, shape.radius)
     if isinstance(shape, S.Cylinder):
         return _cylinder_sdf(shape.center, shape.radius, shape.height)
-    if isinstance(shape, (S.Cup, S.Tank)):
-        outer = shape._outer() if isinstance(shape, S.Cup) else S.Box(shape.lower, shape.upper)
+    if isinstance(shape, S.Frustum):
+        return _frustum_sdf(tuple(shape.base_center), shape.bottom_radius, shape.top_radius, shape.height)
+    if isinstance(shape, S.CONTAINERS):
+        outer = shape._outer() if isinstance(shape, (S.Cup, S.Cone)) else S.Box(shape.lower, shape.upper)
         hollow = shape._hollow()
         return _difference(sdf_func(outer, real, mesh_spacing, uploads), sdf_func(hollow, real, mesh_spacing, uploads))
     if isinstance(shape, S.Mesh):

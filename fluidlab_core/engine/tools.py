@@ -8,6 +8,11 @@ each linear component of an action that would carry the origin past the box over
 (bound − p)/dt, so that the tool stops at the boundary (`plan`, on the host in float64, for a whole action
 sequence before it runs: the origins depend on the actions alone), and the clipping is reported.
 
+Containers that carry fluid (a glass, a cone held by the arm: `keep_out`): after G2P a particle found inside
+the tool at its pose at the start of the substep is put back on its surface and loses its velocity into the
+tool relative to the tool's motion, as for statics (statics.py); the grid condition alone lets particles creep
+through a moving wall.
+
 Contact at a grid node x with velocity u (after gravity and statics), φ = sdf_tool(Rᵀ(x − p)), n = ∇φ:
     u_rel = u − u_tool,  u_n = u_rel·n
     u_t = u_rel − min(u_n, 0) n                                 (inward normal velocity removed)
@@ -46,6 +51,7 @@ class ToolSpec:
     workspace: tuple[np.ndarray, np.ndarray] | None  # bounds on the tool position (m)
     max_speed: float  # m/s, fastest tool point, for the stability check
     color: tuple[float, float, float] = (0.35, 0.35, 0.4)
+    keep_out: bool = False  # after each substep, particles inside the tool are put back on its surface
 
 
 class Tool:
@@ -57,6 +63,27 @@ class Tool:
         self.sdf_local = statics.sdf_func(spec.shape, real, 0.5 * dx, uploads)
         self.normal_local = statics.sdf_normal(self.sdf_local, 0.01 * dx)
         self.contact_at = self._make_contact()
+        self.keep_out = self._make_keep_out()
+
+    def _make_keep_out(self):
+        sdf, normal = self.sdf_local, self.normal_local
+
+        @ti.func
+        def keep_out(x, v, p, R, lin, ang):
+            """A particle at x with velocity v found inside the tool at pose (p, R) moving at (lin, ang) goes back
+            onto its surface and loses its velocity into the tool, relative to the tool's motion."""
+            xl = R.transpose() @ (x - p)
+            phi = sdf(xl)
+            if phi < 0.0:
+                n = R @ normal(xl)
+                x = x - phi * n
+                u_tool = lin + ang.cross(x - p)
+                vn = (v - u_tool).dot(n)
+                if vn < 0.0:
+                    v = v - vn * n
+            return x, v
+
+        return keep_out
 
     def _make_contact(self):
         sdf, normal = self.sdf_local, self.normal_local

@@ -69,6 +69,10 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     rng = np.random.default_rng(seed)
     theta = np.zeros(par.size)
     theta[: par.n_action_params] = rng.normal(0.0, opts.initial_noise * task.max_tool_speed, par.n_action_params)
+    start = task.initial_actions()
+    if start is not None:  # the task's documented starting motion (Task.initial_actions), in the parametrisation
+        fit = np.linalg.lstsq(par.matrix, np.asarray(start, dtype=np.float64).reshape(-1), rcond=None)[0]
+        theta[: par.n_action_params] += fit
     theta = par.clip(theta)
     lr = np.concatenate([np.full(par.n_action_params, opts.learning_rate * task.max_tool_speed),
                          np.full(par.size - par.n_action_params, opts.learning_rate * 5e-3 if opts.optimise_pose else 0.0)])

@@ -122,5 +122,11 @@ def knots(task, n_knots: int = 8) -> Parametrisation:
 
 
 def default(task) -> Parametrisation:
-    """The parametrisation gradient methods use: periodic where the paper uses it, open loop otherwise."""
-    return periodic(task) if task.periodic else open_loop(task)
+    """The parametrisation gradient methods use: periodic where the paper uses it, knots where the task asks
+    for a smooth motion (`Task.action_knots`: a tool that an arm turns fast, whose joint accelerations an
+    open-loop sequence with per-step noise would break), open loop otherwise."""
+    if task.periodic:
+        return periodic(task)
+    if getattr(task, "action_knots", None):
+        return knots(task, task.action_knots)
+    return open_loop(task)

@@ -144,6 +144,115 @@ class Cylinder(Shape):
         return np.pi * self.radius ** 2 * self.height
 
 
+def frustum_sdf(q_r, q_z, r1: float, r2: float, half: float):
+    """Signed distance to a solid frustum (a capped cone) in its axial coordinates: q_r the distance from the
+    axis, q_z the height above its mid-plane, radius r1 at q_z = −half and r2 at q_z = +half (exact; after
+    Quilez, "distance functions", capped cone). Works on numpy arrays."""
+    k2r, k2z = r2 - r1, 2.0 * half
+    ca_r = q_r - np.minimum(q_r, np.where(q_z < 0.0, r1, r2))
+    ca_z = np.abs(q_z) - half
+    t = np.clip(((r2 - q_r) * k2r + (half - q_z) * k2z) / (k2r * k2r + k2z * k2z), 0.0, 1.0)
+    cb_r, cb_z = q_r - r2 + k2r * t, q_z - half + k2z * t
+    sign = np.where((cb_r < 0.0) & (ca_z < 0.0), -1.0, 1.0)
+    return sign * np.sqrt(np.minimum(ca_r ** 2 + ca_z ** 2, cb_r ** 2 + cb_z ** 2))
+
+
+@dataclass(frozen=True)
+class Frustum(Shape):
+    """Solid frustum (capped cone) with a vertical (z) axis: radius `bottom_radius` at its bottom face, centred
+    at `base_center`, and `top_radius` at `height` above it (either radius may be the smaller)."""
+
+    base_center: tuple[float, float, float]
+    bottom_radius: float
+    top_radius: float
+    height: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "base_center", _vec3("Frustum.base_center", self.base_center))
+        for name in ("bottom_radius", "top_radius", "height"):
+            object.__setattr__(self, name, _positive(f"Frustum.{name}", getattr(self, name)))
+
+    def bounds(self):
+        c = np.array(self.base_center)
+        r = max(self.bottom_radius, self.top_radius)
+        return c - [r, r, 0.0], c + [r, r, self.height]
+
+    def sdf(self, points):
+        d = np.asarray(points) - np.array(self.base_center)
+        return frustum_sdf(np.hypot(d[..., 0], d[..., 1]), d[..., 2] - 0.5 * self.height, self.bottom_radius,
+                           self.top_radius, 0.5 * self.height)
+
+    def volume(self):
+        r1, r2 = self.bottom_radius, self.top_radius
+        return np.pi * self.height * (r1 * r1 + r1 * r2 + r2 * r2) / 3.0
+
+
+@dataclass(frozen=True)
+class Cone(Shape):
+    """Open-top conical container standing on its tip (an ice-cream cone): the outer surface narrows from
+    `top_radius` at the rim, `height` above `tip_center`, to `tip_radius` at the tip; the wall is
+    `wall_thickness` thick measured normal to it. The cavity's bottom is `base_thickness` above the tip (default:
+    at least the wall, and where the cavity is half a wall wide, so that the pointed end is solid)."""
+
+    tip_center: tuple[float, float, float]
+    top_radius: float
+    height: float
+    wall_thickness: float
+    tip_radius: float = 0.004
+    base_thickness: float | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "tip_center", _vec3("Cone.tip_center", self.tip_center))
+        for name in ("top_radius", "height", "wall_thickness", "tip_radius"):
+            object.__setattr__(self, name, _positive(f"Cone.{name}", getattr(self, name)))
+        if self.top_radius <= self.tip_radius:
+            raise ValueError(f"a Cone widens upwards: top radius {self.top_radius} m <= tip radius "
+                             f"{self.tip_radius} m")
+        w, s = self.wall_thickness, self.slope
+        base = max(w, (0.5 * w + w * np.sqrt(1.0 + s * s) - self.tip_radius) / s) if self.base_thickness is None \
+            else _positive("Cone.base_thickness", self.base_thickness)
+        object.__setattr__(self, "base_thickness", float(base))
+        if self._hollow_radius(self.base_thickness) <= 0.0 or self.base_thickness >= self.height:
+            raise ValueError(f"Cone walls ({self.wall_thickness} m, bottom {self.base_thickness} m) leave no inside "
+                             f"in a cone of top radius {self.top_radius} m and height {self.height} m")
+
+    @property
+    def slope(self) -> float:
+        """Radius gained per metre of height."""
+        return (self.top_radius - self.tip_radius) / self.height
+
+    def _hollow_radius(self, z: float) -> float:
+        """Radius of the cavity at height z above the tip (the outer radius less the wall, horizontally)."""
+        return self.tip_radius + self.slope * z - self.wall_thickness * np.sqrt(1.0 + self.slope ** 2)
+
+    def thinnest_wall(self) -> float:
+        return min(self.wall_thickness, self.base_thickness)
+
+    def _outer(self):
+        return Frustum(self.tip_center, self.tip_radius, self.top_radius, self.height)
+
+    def _hollow(self):
+        # the cavity, extended above the rim so that the top is open
+        x, y, z = self.tip_center
+        z0, z1 = self.base_thickness, 2.0 * self.height
+        return Frustum((x, y, z + z0), self._hollow_radius(z0), self._hollow_radius(z1), z1 - z0)
+
+    def bounds(self):
+        return self._outer().bounds()
+
+    def sdf(self, points):
+        return np.maximum(self._outer().sdf(points), -self._hollow().sdf(points))
+
+    def volume(self):
+        inner = Frustum(self._hollow().base_center, self._hollow_radius(self.base_thickness),
+                        self._hollow_radius(self.height), self.height - self.base_thickness)
+        return self._outer().volume() - inner.volume()
+
+    def capacity(self) -> float:
+        """Volume the cone holds up to its rim (m³)."""
+        return self._outer().volume() - self.volume()
+
+
 @dataclass(frozen=True)
 class Cup(Shape):
     """Open-top cylindrical container standing on `base_center` (the centre of its outer bottom face).

@@ -25,6 +25,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import threading
 
 from fluidlab_core.tasks.base import SIZES, Task
 
@@ -33,6 +34,8 @@ PLUGIN_ENV = "FLUIDLAB_TASKS"
 
 _registry: dict[str, type] = {}
 _plugins_loaded = False
+_plugins_lock = threading.RLock()
+_loading: list = []  # non-empty while this process loads the plug-ins (a re-entrant call returns at once)
 
 
 def register(cls=None, *, name: str | None = None):
@@ -71,30 +74,42 @@ def unregister(name: str):
 
 
 def _builtin():
-    from fluidlab_core.tasks import cup_tasks, gathering
+    from fluidlab_core.tasks import cup_tasks, gathering, jet_and_glass, pour_tasks
 
-    for cls in (cup_tasks.LatteArtStir, cup_tasks.Mixing, gathering.GatheringEasy, gathering.GatheringHard):
+    for cls in (cup_tasks.LatteArtStir, cup_tasks.Mixing, gathering.GatheringEasy, gathering.GatheringHard,
+                pour_tasks.LatteArtPour, pour_tasks.IceCreamStatic, pour_tasks.IceCreamDynamic,
+                jet_and_glass.Transporting, jet_and_glass.Pouring):
         register(cls)
 
 
 def _load_plugins():
-    """Built-in tasks, then FLUIDLAB_TASKS modules and `fluidlab.tasks` entry points (once per process)."""
+    """Built-in tasks, then FLUIDLAB_TASKS modules and `fluidlab.tasks` entry points (once per process). Under a
+    lock, and marked done only when done: a second thread asking meanwhile waits instead of seeing an empty
+    registry (sim_node's executor and the benchmarks ask from several threads)."""
     global _plugins_loaded
     if _plugins_loaded:
         return
-    _plugins_loaded = True
-    _builtin()
-    for module in filter(None, (m.strip() for m in os.environ.get(PLUGIN_ENV, "").split(","))):
+    with _plugins_lock:
+        if _plugins_loaded or _loading:
+            return  # loaded meanwhile, or a plug-in registering a task calls back in while we load
+        _loading.append(True)
         try:
-            importlib.import_module(module)
-        except ImportError as err:
-            raise ImportError(f"{PLUGIN_ENV} names module {module!r}, which cannot be imported: {err}") from err
-    from importlib.metadata import entry_points
+            _builtin()
+            for module in filter(None, (m.strip() for m in os.environ.get(PLUGIN_ENV, "").split(","))):
+                try:
+                    importlib.import_module(module)
+                except ImportError as err:
+                    raise ImportError(f"{PLUGIN_ENV} names module {module!r}, which cannot be imported: {err}") \
+                        from err
+            from importlib.metadata import entry_points
 
-    for ep in entry_points(group=PLUGIN_GROUP):
-        loaded = ep.load()
-        if callable(loaded) and not isinstance(loaded, type):
-            loaded()
+            for ep in entry_points(group=PLUGIN_GROUP):
+                loaded = ep.load()
+                if callable(loaded) and not isinstance(loaded, type):
+                    loaded()
+            _plugins_loaded = True
+        finally:
+            _loading.clear()
 
 
 def names() -> list[str]:

@@ -65,6 +65,9 @@ class Task:
     periodic: tuple[int, int] | None = None  # (stroke steps, reset steps) of the paper's periodic policy
     flange_to_tool = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0, 1.0)  # tool frame in the flange frame (m, quaternion xyzw)
     sizes: dict[str, SizeConfig] = {}
+    action_knots: int | None = None  # gradient methods optimise this many knots per axis instead of every step
+    # particles at paper size: the paper's "about 100k"; a scene filled by an emitter, or a glass, holds fewer
+    paper_particles: tuple[int, int] = (60_000, 140_000)
 
     def __init__(self, size: str = "small"):
         self.size = size
@@ -171,6 +174,12 @@ class Task:
         tw = np.asarray(twists, dtype=np.float64)
         return tw[:, list(self.action_axes)]
 
+    def initial_actions(self) -> np.ndarray | None:
+        """(N, k) actions gradient-based optimisers start from (plus their seeded noise), or None for rest. A
+        task whose loss barely changes until the tool has done something large (tilting a glass until it pours)
+        gives a starting motion here and says so in docs/tasks.md."""
+        return None
+
     def action_axis_names(self) -> tuple[str, ...]:
         names = ("vx", "vy", "vz", "wx", "wy", "wz")
         return tuple(names[i] for i in self.action_axes)
@@ -273,3 +282,41 @@ class Task:
             raise ValueError(f"the trajectory moves the tool along axes {self.name} does not use (only "
                              f"{self.action_axis_names()})")
         return self.actions_from_twists(traj.twists), traj.initial_pose[:3].copy()
+
+
+class PatternTask(Task):
+    """A task whose loss is the Chamfer distance between one body (`pattern_body`) and goal snapshots that a
+    scripted motion drew on the reference physics (its goal file, tasks/goals.py): LatteArtStir, LatteArtPour and
+    the ice-cream tasks."""
+
+    pattern_body = ""
+    goal_every = 5  # steps between goal snapshots
+    goal_points = 500  # points per snapshot
+
+    def goal(self) -> dict:
+        """{step: (M, 3) goal points}, from the goal file (loaded once)."""
+        from fluidlab_core.tasks import goals
+
+        if not hasattr(self, "_goal"):
+            doc = goals.load(self.name, self.size)
+            self._goal = {int(k): p for k, p in zip(doc["steps"], doc["points"])}
+        return self._goal
+
+    def loss(self, horizon=None):
+        from fluidlab_core.tasks.losses import ChamferToGoal
+
+        horizon = horizon or self.horizon
+        goal = {k: p for k, p in self.goal().items() if k <= horizon}
+        if not goal:  # before the first goal snapshot the loss is that of the first one, seen early
+            k0 = min(self.goal())
+            goal = {horizon: self.goal()[k0]}
+        return ChamferToGoal(goal, self.body_slice(self.pattern_body))
+
+    def step_term(self):
+        from fluidlab_core.tasks.losses import ChamferToGoal
+
+        goal = self.goal()
+        steps = sorted(goal)
+        # the goal of every step: the snapshot at or after it
+        per_step = {k: goal[next(s for s in steps if s >= k)] for k in range(1, min(self.horizon, steps[-1]) + 1)}
+        return ChamferToGoal(per_step, self.body_slice(self.pattern_body))

@@ -23,8 +23,8 @@ import numpy as np
 
 from fluidlab_core import shapes as S
 from fluidlab_core.tasks import common
-from fluidlab_core.tasks.base import SizeConfig, Task
-from fluidlab_core.tasks.losses import ChamferToGoal, NegativeSpread
+from fluidlab_core.tasks.base import PatternTask, SizeConfig, Task
+from fluidlab_core.tasks.losses import NegativeSpread
 
 CUP_CENTER = (0.50, 0.00)  # m, cup axis in the base frame
 CUP_OUTER_RADIUS = 0.045
@@ -86,7 +86,7 @@ class CupTask(Task):
         return cup, coffee
 
 
-class LatteArtStir(CupTask):
+class LatteArtStir(PatternTask, CupTask):
     """Stir a floating layer of milk foam into a goal pattern."""
 
     name = "LatteArtStir"
@@ -95,6 +95,7 @@ class LatteArtStir(CupTask):
     milk_center = (CUP_CENTER[0], CUP_CENTER[1])
     milk_radius = 0.015
     milk_thickness = 0.006
+    pattern_body = "milk"
     goal_every = 5  # steps between goal snapshots
     goal_points = 500  # goal points per snapshot (at most)
     # reward r = c1 − c2·ℓ with ℓ the Chamfer distance (m²) at a step: 1 mm² earns 0.8, 1 cm² earns −99
@@ -106,30 +107,6 @@ class LatteArtStir(CupTask):
         z0 = CUP_WALL + self.fill_height  # coffee surface
         scene.add_particles(S.Cylinder((*self.milk_center, z0 + 0.5 * self.milk_thickness), self.milk_radius,
                                        self.milk_thickness), common.MILK_FOAM, name="milk")
-
-    def goal(self) -> dict:
-        from fluidlab_core.tasks import goals
-
-        if not hasattr(self, "_goal"):
-            doc = goals.load(self.name, self.size)
-            self._goal = {int(k): p for k, p in zip(doc["steps"], doc["points"])}
-        return self._goal
-
-    def loss(self, horizon=None):
-        horizon = horizon or self.horizon
-        goal = {k: p for k, p in self.goal().items() if k <= horizon}
-        if not goal:
-            # before the first goal snapshot the loss is that of the first one, seen early
-            k0 = min(self.goal())
-            goal = {horizon: self.goal()[k0]}
-        return ChamferToGoal(goal, self.body_slice("milk"))
-
-    def step_term(self):
-        goal = self.goal()
-        steps = sorted(goal)
-        # the goal of every step: the snapshot at or after it
-        per_step = {k: goal[next(s for s in steps if s >= k)] for k in range(1, self.horizon + 1)}
-        return ChamferToGoal(per_step, self.body_slice("milk"))
 
     # --- the scripted goal ------------------------------------------------------------------------------
     SCRIPT = {"description": "forward stroke with a sideways wiggle (rosetta)",

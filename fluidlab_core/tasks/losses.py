@@ -110,3 +110,27 @@ class ToolAttraction(Loss):
     def total(self) -> float:
         """The weighted sum over the steps seen in the last rollout."""
         return self.weight * float(sum(self.values.values()))
+
+
+class MeanDistance(Loss):
+    """Mean over a body's particles of the distance |x_i − g| to a goal point (m): the paper's Transporting loss,
+    a norm rather than its square, so that particles far from the goal do not dominate.
+        D = (1/N) Σ_i |x_i − g|,   ∂D/∂x_i = (x_i − g) / (N |x_i − g|)"""
+
+    def __init__(self, goal, particles, steps="final", weight: float = 1.0):
+        super().__init__(steps=steps, weight=weight)
+        self.goal = np.asarray(goal, dtype=np.float64)
+        self.particles = particles
+
+    def evaluate(self, state, grad):
+        rows = state.select(self.particles)
+        if len(rows) == 0:
+            return 0.0, None
+        d = state.x[rows] - self.goal
+        r = np.sqrt(np.sum(d * d, axis=1) + 1e-24)
+        value = float(r.mean())
+        if not grad:
+            return value, None
+        full = np.zeros_like(state.x)
+        full[rows] = d / (len(rows) * r[:, None])
+        return value, {"x": full}
