@@ -40,7 +40,7 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "c
     env = dict(os.environ, FLUIDLAB_CPU_THREADS=os.environ.get("FLUIDLAB_CPU_THREADS", "1"))
     cmd = [sys.executable, "-m", "fluidlab_core.cli", "optimise", task, "--method", method, "--seed", str(seed),
            "--size", size, "--budget", str(budget_rollouts * horizon), "--root", str(out / "trajectories"),
-           "--name", name, "--arch", arch]
+           "--name", name, "--arch", arch, "--force"]  # a bench run again into the same folder replaces its runs
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0

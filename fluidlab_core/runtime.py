@@ -139,11 +139,14 @@ def on_compile(listener):
 
 
 @contextlib.contextmanager
-def compiling(what: str):
-    """Wrap a first run that compiles `what` (e.g. "the simulator's kernels"), telling the listener."""
+def compiling(what: str, done=None):
+    """Wrap a first run that compiles `what` (e.g. "the simulator's kernels"), telling the listener; `done()` is
+    called when the run succeeded (a run that failed is announced again the next time)."""
     listener = _compile_listener or (lambda phase, name, seconds: _log.info(
         "compiling %s ..." % name if phase == "start" else "%s compiled and ran in %.1f s" % (name, seconds)))
     listener("start", what, 0.0)
     t0 = time.perf_counter()
     yield
     listener("done", what, time.perf_counter() - t0)
+    if done is not None:
+        done()

@@ -220,7 +220,7 @@ class Scene:
         add_tool, or its name) carries it. pool: particles to allocate (rounded up to whole rows), or
         duration: seconds of emission to allocate for; one of them is needed. Returns the handle of the
         emitted body (its rows hold the pool; readers return the particles emitted so far)."""
-        from fluidlab_core.engine.emitters import EmitterSpec, blocked_reason, nozzle_lattice, pool_for
+        from fluidlab_core.engine.emitters import EmitterSpec, blocked_reason, pool_for
 
         if not isinstance(material, M.Material):
             raise TypeError(f"material must be a fluidlab_core.materials.Material, got {type(material).__name__}")
@@ -241,34 +241,19 @@ class Scene:
             if key not in names:
                 raise ValueError(f"emitter {name!r}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
             tool_index = names.index(key)
-        sizes = np.atleast_1d(np.asarray(size, dtype=float))
+        spec = EmitterSpec(name, material, nozzle, size, rate, None if speed is None else float(speed),
+                           pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:]), tool_index, self.particle_spacing)
         extent = float((self.upper - self.lower).min())
-        across = 2.0 * sizes[0] if nozzle == "disc" else float(sizes.max())
-        if not np.all(sizes > 0):
-            raise ValueError(f"emitter {name!r}: the nozzle's size must be positive, got {size!r}")
+        across = 2.0 * spec.size if spec.shape == "disc" else max(spec.size)
         if across >= extent:
             raise ValueError(f"emitter {name!r}: the nozzle ({across:.4g} m across) is larger than the domain's "
                              f"smallest side ({extent:.4g} m)")
-        if not (rate is not None and rate > 0 and math.isfinite(rate)):
-            raise ValueError(f"emitter {name!r}: the flow rate must be a positive number of m³/s, got {rate!r}")
-        spacing = self.particle_spacing
-        nozzle_size = float(sizes[0]) if nozzle == "disc" else tuple(sizes[:2])
-        if nozzle not in ("disc", "rectangle"):
-            raise ValueError(f"emitter {name!r}: nozzle must be 'disc' or 'rectangle', got {nozzle!r}")
-        if speed is None:  # the default exit speed: the stream leaves at rest density, u = Q / A
-            n_row = len(nozzle_lattice(nozzle, nozzle_size, spacing))
-            if n_row == 0:
-                raise ValueError(f"emitter {name!r}: the nozzle ({nozzle} {nozzle_size} m) holds no particle at the "
-                                 f"scene's spacing {spacing:.4g} m; make it larger")
-            speed = rate / (n_row * spacing ** 2)
-        spec = EmitterSpec(name, material, nozzle, nozzle_size, float(rate), float(speed), pose[:3].copy(),
-                           pose[3:] / np.linalg.norm(pose[3:]), tool_index, spacing)
         if pool is None and duration is None:
             raise ValueError(f"emitter {name!r}: give its pool (particles) or the duration (s) to allocate for")
         if pool is not None:
             if int(pool) < spec.n_row:
                 raise ValueError(f"emitter {name!r}: a pool of {pool} particles is smaller than one row of its "
-                                 f"nozzle ({spec.n_row} particles at spacing {spacing:.4g} m)")
+                                 f"nozzle ({spec.n_row} particles at spacing {spec.spacing:.4g} m)")
             spec.pool = -(-int(pool) // spec.n_row) * spec.n_row
         else:
             if not (duration > 0 and math.isfinite(duration)):

@@ -277,8 +277,7 @@ class Simulator:
         """runtime.compiling around a solver's first run (which compiles its kernels), nothing afterwards."""
         if solver in self._compiled:
             return contextlib.nullcontext()
-        self._compiled.add(solver)
-        return runtime.compiling(what)
+        return runtime.compiling(what, done=lambda: self._compiled.add(solver))
 
     def _action_sequence(self, actions) -> np.ndarray:
         """(N, n_tools, 6) masked twists from the forms `rollout` accepts."""
@@ -349,7 +348,8 @@ class Simulator:
         return data[rows].astype(np.float64)
 
     def positions(self, h=None) -> np.ndarray:
-        """(N, 3) particle positions (m) of body `h` (all particles if None)."""
+        """(N, 3) particle positions (m) of body `h` (all bodies if None): the particles that take part, so of a
+        body an emitter is filling, those that have left its nozzle (`active_rows`)."""
         return self._rows(self.state.x.to_numpy()[0], h)
 
     def velocities(self, h=None) -> np.ndarray:

@@ -48,6 +48,9 @@ def check_name(name: str, what: str = "trajectory name") -> str:
     if not isinstance(name, str) or not _NAME.match(name) or name in (".", ".."):
         raise TrajectoryError(f"{what} {name!r} is not allowed: use letters, digits, '_', '-' and '.', starting "
                               f"with a letter or digit, without path separators (at most 128 characters)")
+    if name.endswith(".report"):  # <name>.report.json is the optimiser's report beside <name>.json
+        raise TrajectoryError(f"{what} {name!r} is not allowed: a name ending in '.report' would be taken for the "
+                              f"report of the trajectory {name[:-7]!r}")
     return name
 
 

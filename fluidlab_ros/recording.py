@@ -141,7 +141,8 @@ class Recorder:
 
 
 def downsample(points: np.ndarray, n: int = MAX_POINTS) -> np.ndarray:
-    """A fixed, evenly spaced subset of at most n points (the same particles every frame)."""
+    """An evenly spaced subset of at most n points (the same particles every frame while the count does not change;
+    a body an emitter is filling grows, and its subset with it)."""
     if len(points) <= n:
         return points
     return points[np.linspace(0, len(points) - 1, n).astype(int)]

@@ -522,7 +522,8 @@ class SimNode(Node):
 
     # --- execute -----------------------------------------------------------------------------------------
     def _execute_goal(self, goal):
-        if self.stream is not None or self._planning:
+        # an execution runs until its recording has the fluid's final state (`_recording`), after its stream
+        if self.stream is not None or self._planning or self._recording is not None:
             self.get_logger().warn("rejected an execute goal: another one is running")
             return GoalResponse.REJECT
         self._planning = True
@@ -614,11 +615,11 @@ class SimNode(Node):
                 self.get_logger().error(result.message)
                 goal_handle.abort()
                 return result
-        if self.fluid_twin:
-            stream.fluid_epoch = self._fluid_reset(traj)
         if stream.recorder is not None:
             stream.metadata = self._recording_metadata(g, loaded, mounting, pl, target)
-            self._recording = stream
+            self._recording = stream  # before the fluid's reset: its first cloud comes within milliseconds
+        if self.fluid_twin:
+            self._fluid_reset(traj, stream)
         self.stream = stream
         self._planning = False
         thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
@@ -645,7 +646,8 @@ class SimNode(Node):
         note = ""
         if stream.recorder is not None:
             note = self._record_fluid_to_the_end(stream, goal_handle)
-            self._recording = None
+            if self._recording is stream:
+                self._recording = None
             path = stream.recorder.close()
             result.recording_path = str(path)
             note = f"; recorded in {path}{note}" + (f" (recording problem: {stream.recorder.error})"
@@ -888,7 +890,9 @@ class SimNode(Node):
             stream.done.set()
 
     # --- the twin's fluid --------------------------------------------------------------------------------
-    def _fluid_reset(self, traj):
+    def _fluid_reset(self, traj, stream: Stream):
+        """Start the task's fluid worker if needed and reset it for this execution: a new epoch, which the
+        stream takes before the reset goes out (its clouds are recorded by epoch)."""
         size = traj.metadata.get("size", "small") if isinstance(traj.metadata, dict) else "small"
         with self._fluid_lock:
             if self._fluid is not None and (self._fluid[0], self._fluid[1]) != (traj.task, size):
@@ -905,9 +909,9 @@ class SimNode(Node):
                 self.get_logger().info(f"started the twin's fluid ({traj.task}, {size}) in process {proc.pid}")
             with self._fluid_epoch.get_lock():
                 self._fluid_epoch.value += 1
-                epoch = self._fluid_epoch.value
-            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(), "epoch": epoch})
-            return epoch
+                stream.fluid_epoch = self._fluid_epoch.value
+            self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(),
+                                "epoch": stream.fluid_epoch})
 
     def _fluid_pose(self, fk: Robot, last: bool):
         q = self._arm_positions()

@@ -120,6 +120,8 @@ def test_bad_specifications_are_refused_with_the_numbers():
         sc.add_emitter(M.WATER, rate=RATE, speed=5.0, **ok)
     with pytest.raises(ValueError, match="give its pool"):
         sc.add_emitter(M.WATER, rate=RATE, **{**ok, "duration": None})
+    with pytest.raises(ValueError, match=r"size is \(width, height\)"):
+        sc.add_emitter(M.WATER, rate=RATE, **{**ok, "nozzle": "rectangle"})
     with pytest.raises(ValueError, match="rigid material"):
         sc.add_emitter(M.RIGID, rate=RATE, **ok)
     with pytest.raises(ValueError, match="no tool 'arm'"):

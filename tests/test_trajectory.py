@@ -63,7 +63,7 @@ def test_missing_fields_and_files():
         Trajectory.load("/nonexistent/trajectory.json")
 
 
-@pytest.mark.parametrize("name", ["../etc", "a/b", "", ".hidden", "x" * 200, "a\\b"])
+@pytest.mark.parametrize("name", ["../etc", "a/b", "", ".hidden", "x" * 200, "a\\b", "Mixing_dp.report"])
 def test_names_with_path_separators_are_refused(name):
     with pytest.raises(TrajectoryError, match="not allowed"):
         check_name(name)

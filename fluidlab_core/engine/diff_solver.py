@@ -264,7 +264,7 @@ class DiffSolver(Solver):
                 Cp = self.store_C_pre[s, p] + self.C_pre[p]
             if ti.static(self.model.has_emitters):
                 # pool particles: born in this substep (from the nozzle, whose pose carries the gradient), or
-                # parked (their slot s + 1 depends on nothing that matters: they get no gradient)
+                # parked (slot s + 1 a copy of slot s that nothing downstream reads: its gradient is zero)
                 e = self.model.emitters.emitter[p]
                 if e >= 0:
                     j = self.model.emitters.pool_index[p]

@@ -79,7 +79,7 @@ class EmitterSpec:
     shape: str  # "disc" or "rectangle"
     size: object  # disc: radius (m); rectangle: (width, height) (m)
     rate: float  # volumetric flow rate Q (m³/s)
-    speed: float  # exit speed u (m/s)
+    speed: float | None  # exit speed u (m/s); None: Q / A, the stream at rest density
     position: np.ndarray  # nozzle frame origin in the parent frame (world, or the tool's frame) (m)
     quaternion: np.ndarray  # nozzle frame orientation in the parent frame (x, y, z, w)
     tool: int | None  # index of the carrying tool, or None for a nozzle fixed in the world
@@ -89,18 +89,26 @@ class EmitterSpec:
 
     def __post_init__(self):
         if self.shape not in SHAPES:
-            raise ValueError(f"emitter {self.name!r}: shape must be one of {SHAPES}, got {self.shape!r}")
-        if not (self.rate > 0 and math.isfinite(self.rate)):
+            raise ValueError(f"emitter {self.name!r}: nozzle must be one of {SHAPES}, got {self.shape!r}")
+        sizes = np.atleast_1d(np.asarray(self.size, dtype=float))
+        if sizes.shape != ((1,) if self.shape == "disc" else (2,)) or not np.all(sizes > 0) \
+                or not np.all(np.isfinite(sizes)):
+            want = "a radius (m)" if self.shape == "disc" else "(width, height) in m"
+            raise ValueError(f"emitter {self.name!r}: a {self.shape} nozzle's size is {want}, got {self.size!r}")
+        self.size = float(sizes[0]) if self.shape == "disc" else (float(sizes[0]), float(sizes[1]))
+        if not (self.rate is not None and self.rate > 0 and math.isfinite(self.rate)):
             raise ValueError(f"emitter {self.name!r}: the flow rate must be a positive number of m³/s, got "
                              f"{self.rate!r}")
-        if not (self.speed > 0 and math.isfinite(self.speed)):
-            raise ValueError(f"emitter {self.name!r}: the exit speed must be a positive number of m/s, got "
-                             f"{self.speed!r}")
         if self.lattice is None:
             self.lattice = nozzle_lattice(self.shape, self.size, self.spacing)
         if len(self.lattice) == 0:
             raise ValueError(f"emitter {self.name!r}: the nozzle ({self.shape} {self.size} m) holds no particle at "
                              f"the scene's spacing {self.spacing:.4g} m; make it larger")
+        if self.speed is None:
+            self.speed = self.natural_speed
+        if not (self.speed > 0 and math.isfinite(self.speed)):
+            raise ValueError(f"emitter {self.name!r}: the exit speed must be a positive number of m/s, got "
+                             f"{self.speed!r}")
         ratio = self.natural_speed / self.speed
         if not (1.0 / DENSITY_RATIO_LIMIT <= ratio <= DENSITY_RATIO_LIMIT):
             raise ValueError(

@@ -151,8 +151,8 @@ ICE_REACH = (0.012, 0.012, 0.015)  # half extents of the box the moving part's o
 FLANGE_TO_NOZZLE = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0, 1.0)
 FLANGE_TO_CONE = (0.06, 0.0, 0.10, 1.0, 0.0, 0.0, 0.0)  # from the side: clear of the nozzle above
 # soft serve: the paper's ice cream density (0.5); moduli set for a 4 m/s wave speed like every task material
-# (λ + 2μ = ρ c²), and a yield stress of 200 Pa that holds a 4 cm pile (ρ g h ≈ 100 Pa) and lets the nozzle's
-# stream flow
+# (λ + 2μ = ρ c²), and a yield stress of 200 Pa, which a pile reaches at about 4 cm (ρ g h ≈ 200 Pa): the cone's
+# spiral holds, and the nozzle's stream flows
 TASK_ICE_CREAM = M.VonMisesPlastic("task_ice_cream", density=500.0, shear_modulus=2000.0, lame_lambda=4000.0,
                                    yield_stress=200.0, color=M.ICE_CREAM.color)
 ICE_SIZES = {
