@@ -11,8 +11,15 @@ from fluidlab_core import optim, tasks
 from fluidlab_core.optim import dp
 
 
-def test_a_few_dp_iterations_lower_the_loss():
-    task = tasks.make("GatheringEasy", "small")
+@pytest.fixture(scope="module")
+def gathering():
+    """One GatheringEasy task for the DP tests: its simulators (built on first use) are kept, so the second test
+    does not compile them again (a simulator's kernels compile for its own fields)."""
+    return tasks.make("GatheringEasy", "small")
+
+
+def test_a_few_dp_iterations_lower_the_loss(gathering):
+    task = gathering
     seen = []
     opts = dp.DPOptions(expanding_region=False, attraction=False)  # whole horizon each iteration: comparable
     result = dp.run(task, budget=5 * task.horizon, seed=0, callback=seen.append, options=opts)
@@ -58,3 +65,28 @@ def test_a_callback_stops_the_run():
     traj = optim.optimise(task, "cma-es", budget=50 * task.horizon, seed=0,
                           callback=lambda p: calls.append(p) or True)
     assert len(calls) == 1 and traj.metadata["steps_used"] < 50 * task.horizon
+
+
+def test_the_temporally_expanding_region_grows_to_the_whole_horizon(gathering):
+    """DP's expanding region (the paper's technique): the first iterations optimise a quarter of the horizon,
+    the region grows by a quarter at a time and never shrinks, it covers the whole horizon by half the budget,
+    each iteration costs its region in simulated steps, and only whole-horizon losses count as the best.
+    (GatheringEasy: its periodic policy's period, 20 steps, is under a quarter of its 100-step horizon; the
+    simulator is the one the test above compiled.)"""
+    task = gathering
+    seen = []
+    budget = 6 * task.horizon
+    dp.run(task, budget=budget, seed=0, callback=seen.append, options=dp.DPOptions(attraction=False))
+    regions = [p.region for p in seen]
+    quarter = int(np.ceil(0.25 * task.horizon))
+    print(f"\nDP regions on GatheringEasy (horizon {task.horizon}): {regions}")
+    assert regions[0] == quarter
+    assert all(b >= a for a, b in zip(regions, regions[1:]))
+    assert set(np.diff(regions)) <= {0, quarter} | {task.horizon - r for r in regions}
+    assert regions[-1] == task.horizon
+    half = next(p for p in seen if p.steps >= budget // 2)
+    assert half.region == task.horizon
+    steps = [p.steps for p in seen]
+    assert np.diff([0] + steps).tolist() == regions
+    assert all(not np.isfinite(p.best_loss) for p, r in zip(seen, regions) if r < task.horizon and
+               all(q < task.horizon for q in regions[: seen.index(p) + 1]))
