@@ -211,6 +211,9 @@ class SimNode(Node):
         self.twin.reset(q_init, time.monotonic())
 
         self._lock = threading.Lock()
+        # goal acceptance checks and sets the running flags under this lock: the executor calls goal callbacks
+        # on several threads, and two goals of one kind checked together must not both be accepted
+        self._claims = threading.Lock()
         self.armed = False
         self.stream: Stream | None = None
         self.optimising = False
@@ -251,13 +254,20 @@ class SimNode(Node):
                 depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
             self.create_subscription(JointState, self.joint_state_topic, self._on_joint_state, qos,
                                      callback_group=cb)
+        # The goal services keep 100 requests (rclpy's default keeps 10): a burst of goals from several clients
+        # beyond that was dropped unanswered (a test's 20 Execute goals: some never got a response), where each
+        # must get its rejection.
+        requests = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.VOLATILE)
+        servers = {"goal_service_qos_profile": requests, "result_service_qos_profile": requests,
+                   "cancel_service_qos_profile": requests, "cancel_callback": lambda _: CancelResponse.ACCEPT,
+                   "callback_group": cb}
         ActionServer(self, Optimise, "~/optimise", execute_callback=self._optimise,
-                     goal_callback=self._optimise_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
-                     callback_group=cb)
+                     goal_callback=self._optimise_goal, **servers)
         ActionServer(self, Execute, "~/execute", execute_callback=self._execute, goal_callback=self._execute_goal,
-                     cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=cb)
+                     **servers)
         ActionServer(self, Replay, "~/replay", execute_callback=self._replay, goal_callback=self._replay_goal,
-                     cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=cb)
+                     **servers)
         self.replaying = False
         self.create_service(ListTrajectories, "~/list_trajectories", self._list, callback_group=cb)
         self.create_service(GetTrajectory, "~/get_trajectory", self._get, callback_group=cb)
@@ -363,10 +373,11 @@ class SimNode(Node):
     # --- optimise ----------------------------------------------------------------------------------------
     def _claim(self, flag: str, what: str) -> GoalResponse:
         """Accept a goal if no other of its kind runs (the attribute `flag` says), and mark that one runs."""
-        if getattr(self, flag):
-            self.get_logger().warn(f"rejected a {what} goal: another one is running")
-            return GoalResponse.REJECT
-        setattr(self, flag, True)
+        with self._claims:
+            if getattr(self, flag):
+                self.get_logger().warn(f"rejected a {what} goal: another one is running")
+                return GoalResponse.REJECT
+            setattr(self, flag, True)
         return GoalResponse.ACCEPT
 
     def _optimise_goal(self, goal):
@@ -523,10 +534,11 @@ class SimNode(Node):
     # --- execute -----------------------------------------------------------------------------------------
     def _execute_goal(self, goal):
         # an execution runs until its recording has the fluid's final state (`_recording`), after its stream
-        if self.stream is not None or self._planning or self._recording is not None:
-            self.get_logger().warn("rejected an execute goal: another one is running")
-            return GoalResponse.REJECT
-        self._planning = True
+        with self._claims:
+            if self.stream is not None or self._planning or self._recording is not None:
+                self.get_logger().warn("rejected an execute goal: another one is running")
+                return GoalResponse.REJECT
+            self._planning = True
         return GoalResponse.ACCEPT
 
     def _prepare(self, g):

@@ -179,6 +179,46 @@ def test_execute_on_the_twin_streams_at_the_rate_within_limits_and_the_fluid_fol
     assert np.linalg.norm(fk.frame_placement(q_twin).translation - [end.x, end.y, end.z]) < 0.005
 
 
+def test_goals_sent_together_one_of_each_kind_runs_and_rejected_goals_send_nothing(ros_env, client, tmp_path,
+                                                                                    trajectories):
+    """20 Execute and 20 Optimise goals from four clients of each kind, sent in one burst: exactly one of each kind
+    is accepted (the node checks and claims under a lock; before, two goals checked together could both pass),
+    and the commands the monitor sees are those of the one accepted plan, no more."""
+    node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
+    monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
+    try:
+        executors = [client.action(Execute, "/sim_node/execute") for _ in range(4)]
+        optimisers = [client.action(Optimise, "/sim_node/optimise") for _ in range(4)]
+        execute = Execute.Goal(trajectory_name=MIXING, target="twin")
+        optimise = Optimise.Goal(task="LatteArtStir", size="small", method="cma-es", budget=1000 * 75, seed=3,
+                                 name="ros_burst")
+
+        def burst():
+            return [c.send_goal_async(g) for _ in range(5) for c, g in
+                    [*((e, execute) for e in executors), *((o, optimise) for o in optimisers)]]
+
+        futures = client.in_executor(burst)
+        handles = [client.wait(f, 60, "goal acceptance") for f in futures]
+        kinds = [k for _ in range(5) for k in ["execute"] * 4 + ["optimise"] * 4]  # the order burst() sent them in
+        accepted = [k for k, h in zip(kinds, handles) if h.accepted]
+        assert sorted(accepted) == ["execute", "optimise"], accepted
+        run = next(h for k, h in zip(kinds, handles) if h.accepted and k == "execute")
+        res = client.result(run, 300)
+        assert res.status == GoalStatus.STATUS_SUCCEEDED, (res.result.message, node.text())
+        opt = next(h for k, h in zip(kinds, handles) if h.accepted and k == "optimise")
+        client.cancel(opt)
+        assert client.result(opt, 60).status == GoalStatus.STATUS_CANCELED
+        time.sleep(0.5)
+    finally:
+        node_rc = node.stop()
+        times, commands, stats = stream_of(monitor, out)
+        assert node_rc == 0, node.text()
+    expected = int(round(res.result.duration * 500))
+    # one plan's commands, then the position feedback's correction ramped out (at most 250 commands), as above
+    assert expected <= len(commands) <= expected + 250, f"the monitor saw {len(commands)}, one plan has {expected}"
+    assert_within_limits(commands)
+
+
 def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp_path, trajectories):
     node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
     monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
