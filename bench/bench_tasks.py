@@ -29,7 +29,12 @@ def registered_tasks() -> list[str]:
     from fluidlab_core import tasks
 
     return tasks.names()
+
+
 METHODS = ("dp", "dp-h", "cma-es")
+# DP ablations: a variant's name and the techniques it switches off (`fluidlab optimise --without`)
+VARIANTS = {"dp-no-sharing": ["gradient_sharing"], "dp-no-attraction": ["attraction"],
+            "dp-neither": ["gradient_sharing", "attraction"]}
 
 
 def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "cpu"):
@@ -38,9 +43,12 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "c
     horizon = tasks.make(task, size).horizon
     name = f"{task}_{method}_seed{seed}_{size}"  # names are unique across the folder (trajectory_store)
     env = dict(os.environ, FLUIDLAB_CPU_THREADS=os.environ.get("FLUIDLAB_CPU_THREADS", "1"))
-    cmd = [sys.executable, "-m", "fluidlab_core.cli", "optimise", task, "--method", method, "--seed", str(seed),
+    base = "dp" if method in VARIANTS else method
+    cmd = [sys.executable, "-m", "fluidlab_core.cli", "optimise", task, "--method", base, "--seed", str(seed),
            "--size", size, "--budget", str(budget_rollouts * horizon), "--root", str(out / "trajectories"),
            "--name", name, "--arch", arch, "--force"]  # a bench run again into the same folder replaces its runs
+    if method in VARIANTS:
+        cmd += ["--without", *VARIANTS[method]]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -49,6 +57,7 @@ def run_one(task, method, seed, size, budget_rollouts, out: Path, arch: str = "c
         return {"task": task, "method": method, "seed": seed, "error": proc.stderr[-2000:], "wall": wall}
     rep = json.loads(report_path.read_text())
     rep["wall"] = wall
+    rep["method"] = method  # the variant's name
     return rep
 
 
@@ -56,17 +65,17 @@ def table(runs, size, rollouts, names=None) -> str:
     lines = [f"Final loss on the reference physics (hard contact), {size} tasks, float32 CPU, budget {rollouts} "
              f"rollouts of the horizon per run, mean ± std over seeds (n = seeds that finished); lower is better. "
              f"'zero-action' is the loss of leaving the tool still; 'wall' includes the first run's compilation.",
-             f"{'task':<15} {'method':<7} {'final loss (mean ± std)':>28} {'n':>2} {'zero-action loss':>17} "
+             f"{'task':<15} {'method':<16} {'final loss (mean ± std)':>28} {'n':>2} {'zero-action loss':>17} "
              f"{'wall s/run':>10}"]
     for task in names or sorted({r["task"] for r in runs}, key=lambda t: registered_tasks().index(t)):
-        for method in METHODS:
+        for method in [m for m in (*METHODS, *VARIANTS) if any(r["method"] == m for r in runs)]:
             ok = [r for r in runs if r["task"] == task and r["method"] == method and "final_loss" in r]
             if not ok:
-                lines.append(f"{task:<15} {method:<7} {'(no finished run)':>28}")
+                lines.append(f"{task:<15} {method:<16} {'(no finished run)':>28}")
                 continue
             f = np.array([r["final_loss"] for r in ok])
             zero = ok[0].get("zero_loss", float("nan"))
-            lines.append(f"{task:<15} {method:<7} {f.mean():>16.4e} ± {f.std():<9.2e} {len(ok):>2} {zero:>17.4e} "
+            lines.append(f"{task:<15} {method:<16} {f.mean():>16.4e} ± {f.std():<9.2e} {len(ok):>2} {zero:>17.4e} "
                          f"{np.mean([r['wall'] for r in ok]):>10.0f}")
     return "\n".join(lines)
 
@@ -90,7 +99,9 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS))
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=[*METHODS, *VARIANTS],
+                    help="methods, and DP ablations: " + "; ".join(f"{k}: dp --without {' '.join(v)}"
+                                                                   for k, v in VARIANTS.items()))
     ap.add_argument("--out", default="out/bench_tasks")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend (default cpu)")
     ap.add_argument("--table-only", action="store_true", help="remake the table from DIR/runs.jsonl")

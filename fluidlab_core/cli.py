@@ -106,6 +106,8 @@ def _cmd_optimise(args):
     task = tasks.make(args.task, size=args.size)
     budget = args.budget if args.budget is not None else 12 * task.horizon
     optim.check_request(task, args.method, budget, args.seed)
+    if args.without and args.method != "dp":
+        raise ValueError(f"--without switches off techniques of --method dp; {args.method} has none")
     store = TrajectoryStore(_trajectory_root(args.root))
     name = args.name or f"{task.name}_{args.method}_seed{args.seed}_{args.size}"
     path = store.new_path(task.name, name, overwrite=args.force)
@@ -115,7 +117,7 @@ def _cmd_optimise(args):
           f"be written to {path}" + (" (replacing the file there)" if path.exists() else ""), file=sys.stderr)
     bar = _Bar(budget)
     traj = optim.optimise(task, args.method, budget, seed=args.seed,
-                          callback=lambda p: bar.update(p.steps, p.line()))
+                          callback=lambda p: bar.update(p.steps, p.line()), without=args.without)
     bar.close()
     path = traj.save(path)
     report = {"task": task.name, "size": args.size, "method": args.method, "seed": args.seed, "trajectory": str(path),
@@ -123,7 +125,7 @@ def _cmd_optimise(args):
                                                "seconds")},
               "loss_first": traj.loss_history[0] if traj.loss_history else None,
               "loss_best": min(traj.loss_history) if traj.loss_history else None,
-              "precision": args.precision, "arch": args.arch}
+              "precision": args.precision, "arch": args.arch, "without": list(args.without)}
     report_path = path.with_name(path.stem + ".report.json")
     write_atomic(report_path, json.dumps(report, indent=1).encode())
     print(f"final loss {report['final_loss']:.6g} (reference physics), return {report['return']:.4g}")
@@ -247,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("list", help="list the tasks and their sizes")
     p.set_defaults(func=_cmd_list)
 
-    from fluidlab_core.optim import DESCRIPTIONS, METHODS
+    from fluidlab_core.optim import DESCRIPTIONS, METHODS, TECHNIQUES
 
     p = sub.add_parser("optimise", aliases=["optimize"], help="optimise a task's trajectory and save it",
                        description="Optimise a task's tool trajectory and save it as TASK/NAME.json under --root, "
@@ -265,6 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"folder of trajectories (default ./{DEFAULT_ROOT}; the repository's shipped trajectories/ "
                         f"only when you name it)")
     p.add_argument("--force", action="store_true", help="replace a trajectory of the same task and name")
+    p.add_argument("--without", nargs="+", default=[], choices=TECHNIQUES, metavar="TECHNIQUE",
+                   help="switch DP techniques off, for ablations: " + ", ".join(TECHNIQUES))
     _add_backend(p)
     p.set_defaults(func=_cmd_optimise)
 

@@ -57,6 +57,25 @@ def test_bad_requests_are_refused():
         optim.optimise(task, "cma-es", budget=1000, seed=-1)
     with pytest.raises(KeyError, match="unknown task"):
         optim.optimise("Stirring", "dp", budget=1000)
+    with pytest.raises(ValueError, match="unknown DP technique.*'sharing'; techniques: soft_contact, expanding_region"):
+        optim.optimise(task, "dp", budget=1000, without=["sharing"])
+    with pytest.raises(ValueError, match="applies to method 'dp' only"):
+        optim.optimise(task, "cma-es", budget=1000, without=["attraction"])
+
+
+def test_dp_records_the_techniques_it_used_and_a_task_can_decline_the_expanding_region(gathering):
+    """Each DP technique is switchable and the run's settings say which were on: gradient sharing exists only
+    in tasks that define it (Pouring, Transporting), and Pouring declines the expanding region (its goal is a
+    final state after a detour). One iteration of GatheringEasy (whose simulators the test above compiled)."""
+    task = gathering
+    on = optim.optimise(task, "dp", budget=task.horizon, max_iterations=1).metadata["settings"]
+    assert on["attraction"] and on["expanding_region"] and not on["gradient_sharing"]  # no sharing term here
+    off = optim.optimise(task, "dp", budget=task.horizon, max_iterations=1,
+                         without=["attraction", "expanding_region"]).metadata["settings"]
+    assert not off["attraction"] and not off["expanding_region"]
+    pouring = tasks.make("Pouring", "small")
+    assert not pouring.expanding_region and pouring.gradient_sharing(1.0) is not None
+    assert tasks.make("Transporting", "small").gradient_sharing(1.0) is not None
 
 
 def test_a_callback_stops_the_run():

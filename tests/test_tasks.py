@@ -11,7 +11,8 @@ import pytest
 from fluidlab_core import losses, tasks
 from fluidlab_core.optim import params as P
 from fluidlab_core.tasks import goals
-from fluidlab_core.tasks.losses import ChamferToGoal, MeanDistance, NegativeSpread, ToolAttraction
+from fluidlab_core.tasks.losses import BodyAttraction, ChamferToGoal, MeanDistance, MeanL1Distance, NegativeSpread, \
+    ShareWithLead, ToolAttraction
 
 TASKS = ["LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard", "LatteArtPour", "IceCreamStatic",
          "IceCreamDynamic", "Transporting", "Pouring"]
@@ -87,12 +88,17 @@ def test_task_builds_resets_steps_and_conserves_mass(name):
     # nothing leaves the domain
     lo, hi = sim.scene.lower, sim.scene.upper
     assert np.all(x >= lo - 1e-9) and np.all(x <= hi + 1e-9)
-    # with the tool at rest, a settled liquid moves little and its volume stays within weak compressibility
+    # with the tool at rest, a settled liquid moves little and its volume stays within weak compressibility;
+    # Transporting's jet (160 ml/s at 1.4 m/s, 5 mm under the surface) stirs the water from the first step (its
+    # purpose: measured 24 mm within 3 cm of the nozzle after 0.1 s, 7 mm beyond), so there only beyond 3 cm
     settled = [h for h in sim.handles.values() if h.emitter < 0]
     if settled:
         x_settled = np.concatenate([sim.positions(h) for h in settled])
         x0_settled = np.concatenate([x0[h.slice] for h in settled])
-        assert np.abs(x_settled - x0_settled).max() < 0.01
+        far = np.ones(len(x0_settled), dtype=bool)
+        if name == "Transporting":
+            far = np.linalg.norm(x0_settled[:, :2] - task.initial_tool_pose()[:2], axis=1) > 0.03
+        assert np.abs(x_settled - x0_settled)[far].max() < 0.01
         assert sum(sim.volumes(h).sum() for h in settled) == pytest.approx(volume0, rel=0.03)
     loss = task.evaluate(np.zeros((task.horizon, task.n_actions)), rewards=True)
     assert np.isfinite(loss["loss"]) and np.isfinite(loss["return"]) and len(loss["rewards"]) == task.horizon
@@ -136,11 +142,13 @@ def _state(x, tool=None):
                             np.eye(3)[None])
 
 
-def _fd_check(loss, x, key="x", tool=None, eps=1e-7):
+def _fd_check(loss, x, key="x", tool=None, eps=1e-7, fixed=()):
+    """The gradient against central differences along a random direction (rows in `fixed` held still)."""
     rng = np.random.default_rng(3)
     value, grads = loss(_state(x, tool), 1, grad=True)
     base = x if key == "x" else tool
     d = rng.normal(size=base.shape)
+    d[list(fixed)] = 0.0
     plus, minus = base + eps * d, base - eps * d
     if key == "x":
         fp, fm = loss(_state(plus, tool), 1)[0], loss(_state(minus, tool), 1)[0]
@@ -157,6 +165,8 @@ def test_task_loss_gradients_match_finite_differences():
     _fd_check(ChamferToGoal({1: goal}, slice(10, 50)), x)
     _fd_check(NegativeSpread(slice(0, 40), steps="all"), x)
     _fd_check(MeanDistance(np.array([0.02, 0.03, 0.01]), slice(0, 45), steps="all"), x)
+    _fd_check(MeanL1Distance((0.0, 0.0, 0.01), slice(0, 45), axes=(2,)), x)
+    _fd_check(MeanL1Distance(x[20:50] + 0.003, slice(20, 50)), x)
     # a body still being emitted: only the active rows count, and only they get a gradient
     active = np.zeros(len(x), dtype=bool)
     active[:30] = True
@@ -165,6 +175,23 @@ def test_task_loss_gradients_match_finite_differences():
     assert value == pytest.approx(ChamferToGoal({1: goal}, slice(10, 30))(_state(x), 1)[0])
     assert not np.any(grads["x"][30:])
     _fd_check(ToolAttraction(slice(5, 30)), x, key="tool_position", tool=np.array([[0.02, 0.01, 0.03]]))
+    # gradient sharing (FluidLab's, as its released code has it): towards a body's lead particle, and between bodies
+    lead_term = ShareWithLead(slice(0, 40), score=lambda p: p[:, 0], pending=lambda p: p[:, 2] > 0.01, k=6)
+    body = x[:40]
+    lead = body[np.argmin(body[:, 0])]
+    _fd_check(lead_term, x, fixed=[int(np.argmin(body[:, 0]))])  # the lead is held constant (no gradient)
+    value, grads = lead_term(_state(x), 1, grad=True)
+    near = np.argsort(np.sum((body - lead) ** 2, axis=1))[:6]
+    share = np.mean(body[:, 2] > 0.01)
+    assert 0 < share < 1 and value == pytest.approx(share * np.abs(body[near] - lead).sum())
+    assert np.count_nonzero(np.any(grads["x"] != 0, axis=1)) == 5  # the k nearest but the lead itself
+    done = x.copy()
+    done[:40, 2] = 0.0  # nothing pending: no pull
+    assert lead_term(_state(done), 1)[0] == 0.0
+    pair_term = BodyAttraction(slice(0, 25), slice(30, 60), steps="all")
+    _fd_check(pair_term, x)
+    brute = np.abs(x[:25, None, :] - x[None, 30:60, :]).sum() / (25 * 30)
+    assert pair_term(_state(x), 1)[0] == pytest.approx(brute, rel=1e-12)
     # the Chamfer distance of a set to itself is zero, and it grows with a shift
     assert ChamferToGoal({1: x[10:50]}, slice(10, 50))(_state(x), 1)[0] == pytest.approx(0.0, abs=1e-20)
     shifted = x.copy()
@@ -238,7 +265,9 @@ def test_trajectory_of_a_task_round_trips_and_refuses_other_tasks(tmp_path):
 
 def test_shipped_trajectories_reproduce_their_recorded_loss():
     """One optimised trajectory per task ships in trajectories/<task>/ with its video; replaying it on the
-    reference physics gives the final loss its optimiser recorded."""
+    reference physics gives the final loss its optimiser recorded (within 0.1 %). Pouring within 1 %: its pour
+    turns on a tenth of a radian of tilt over 8 s, and float32 sums in another order move its loss (measured:
+    2.5843e-2 with one CPU thread, as the bench optimised it, 2.5759e-2 with two, 0.33 %; each repeats exactly)."""
     from pathlib import Path
 
     from fluidlab_core.trajectory import Trajectory
@@ -253,5 +282,5 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
         actions, position = task.actions_from_trajectory(traj)
         loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
         zero = task.evaluate(np.zeros_like(actions), rewards=False)["loss"]
-        assert loss == pytest.approx(traj.metadata["final_loss"], rel=1e-3)
+        assert loss == pytest.approx(traj.metadata["final_loss"], rel=1e-2 if name == "Pouring" else 1e-3), name
         assert loss < zero  # the optimised trajectory beats leaving the tool still

@@ -1,6 +1,7 @@
 """Trajectory optimisers: `optimise(task, method, budget, seed, callback)` returns a Trajectory.
 
-Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction; optim/dp.py),
+Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction, gradient sharing
+within fluid bodies; optim/dp.py),
 "dp-h" (the same loop without them) and "cma-es" (optim/cmaes.py). Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
@@ -19,7 +20,8 @@ from fluidlab_core.optim.progress import Progress, Result
 METHODS = ("dp", "dp-h", "cma-es")
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
-          "a temporally expanding loss region and an attraction that lets untouched fluid feel the tool",
+          "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
+          "sharing that ties untouched fluid to the fluid the tool moves (Pouring, Transporting)",
     "dp-h": "the same gradient descent on the hard-contact physics without those techniques (the paper's DP-H)",
     "cma-es": "CMA-ES (the cma package), gradient-free, one rollout per sample, no backward pass",
 }
@@ -37,19 +39,29 @@ def check_request(task, method: str, budget, seed):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
 
 
+TECHNIQUES = ("soft_contact", "expanding_region", "attraction", "gradient_sharing")  # DP's, each switchable
+
+
 def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_iterations: int | None = None,
-             size: str = "small"):
-    """Optimise `task` (a Task or a task name, made at `size`) and return its Trajectory."""
+             size: str = "small", without=()):
+    """Optimise `task` (a Task or a task name, made at `size`) and return its Trajectory. `without`: DP techniques
+    to switch off (names from TECHNIQUES), for ablations; only with method "dp"."""
     from fluidlab_core import tasks
     from fluidlab_core.optim import cmaes, dp
 
     if isinstance(task, str):
         task = tasks.make(task, size=size)
     check_request(task, method, budget, seed)
+    without = tuple(without)
+    unknown = [w for w in without if w not in TECHNIQUES]
+    if unknown:
+        raise ValueError(f"unknown DP technique(s) {', '.join(map(repr, unknown))}; techniques: {', '.join(TECHNIQUES)}")
+    if without and method != "dp":
+        raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
     if method == "cma-es":
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
     else:
-        opts = dp.DPOptions() if method == "dp" else dp.DPOptions.plain()
+        opts = dp.DPOptions(**{w: False for w in without}) if method == "dp" else dp.DPOptions.plain()
         result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations)
     par = result.parametrisation
     actions, position = par.actions(result.theta), par.tool_position(result.theta)
@@ -61,4 +73,4 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            loss_history=result.history, metadata=meta)
 
 
-__all__ = ["optimise", "check_request", "METHODS", "DESCRIPTIONS", "Progress", "Result"]
+__all__ = ["optimise", "check_request", "METHODS", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]

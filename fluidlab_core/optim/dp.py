@@ -12,11 +12,17 @@ The techniques of Xian et al. (2023, §5), each switchable:
   evaluated on the reference (hard contact) physics.
 - temporally expanding region: start with the first quarter of the horizon and grow it by a quarter when the
   loss stops improving (relative change < 2 % over two iterations), and in any case so that the whole
-  horizon is reached by half of the budget.
+  horizon is reached by half of the budget. Not for a task that sets `expanding_region = False` (Pouring: its
+  goal is the state after a pour and the way back, which no partial horizon approaches).
 - attraction: add w·Σ_k |p_tool(k) − x̄_body(k)|² (horizontal), which pulls the tool towards the fluid it
   must move, where the task loss alone has no gradient (a stand-in for the paper's gradient sharing within a
   fluid body). w starts at 10 % of the task loss per unit of attraction and decays by half each iteration.
-DP-H is the same loop with hard contact, the full horizon from the start and no attraction.
+- gradient sharing within fluid bodies, where the task defines it (`Task.gradient_sharing`: Pouring and
+  Transporting, as in the paper's released code; tasks/losses.py gives the terms): particles the tool does not
+  move are tied to those it does, so that they carry a gradient. Its weight is set once, to 10 % of the task
+  loss per unit of the term on the first rollout, and then held (the released code holds it too; the Pouring
+  term shrinks by itself as the liquid leaves).
+DP-H is the same loop with hard contact, the full horizon from the start, and neither attraction nor sharing.
 
 Budget: simulated steps. An iteration over r steps counts r (the backward pass re-simulates those steps too
 and costs a few forward passes in time; the reports give wall time beside steps).
@@ -37,13 +43,14 @@ class DPOptions:
     soft_contact: bool = True
     expanding_region: bool = True
     attraction: bool = True
+    gradient_sharing: bool = True
     learning_rate: float = 0.1  # Adam step, as a fraction of max_tool_speed (actions) or of 5 mm (tool position)
     initial_noise: float = 0.3  # std of the initial actions, as a fraction of max_tool_speed
     optimise_pose: bool = True
 
     @classmethod
     def plain(cls) -> "DPOptions":
-        return cls(soft_contact=False, expanding_region=False, attraction=False)
+        return cls(soft_contact=False, expanding_region=False, attraction=False, gradient_sharing=False)
 
 
 class _Adam:
@@ -68,21 +75,29 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     par = P.default(task)
     rng = np.random.default_rng(seed)
     theta = np.zeros(par.size)
-    theta[: par.n_action_params] = rng.normal(0.0, opts.initial_noise * task.max_tool_speed, par.n_action_params)
     start = task.initial_actions()
-    if start is not None:  # the task's documented starting motion (Task.initial_actions), in the parametrisation
+    noise = opts.initial_noise if start is None else task.start_noise
+    theta[: par.n_action_params] = rng.normal(0.0, noise * task.max_tool_speed, par.n_action_params)
+    if start is not None:  # the task's documented starting motion (Task.initial_actions), in the parametrisation,
+        # with less noise than a start from rest: the motion is there to be refined, not scrambled (Pouring's
+        # pour turns on a tenth of a radian of tilt; DP's noise at rest scrambles its tilt by about 0.5 rad)
         fit = np.linalg.lstsq(par.matrix, np.asarray(start, dtype=np.float64).reshape(-1), rcond=None)[0]
         theta[: par.n_action_params] += fit
     theta = par.clip(theta)
-    lr = np.concatenate([np.full(par.n_action_params, opts.learning_rate * task.max_tool_speed),
+    rate = task.learning_rate if task.learning_rate is not None else opts.learning_rate
+    lr = np.concatenate([np.full(par.n_action_params, rate * task.max_tool_speed),
                          np.full(par.size - par.n_action_params, opts.learning_rate * 5e-3 if opts.optimise_pose else 0.0)])
     adam = _Adam(lr)
     sim = task.simulator(grad=True, contact="soft" if opts.soft_contact else "hard")
     horizon = task.horizon
-    region = max(1, int(np.ceil(0.25 * horizon))) if opts.expanding_region else horizon
+    expanding = opts.expanding_region and task.expanding_region
+    region = max(1, int(np.ceil(0.25 * horizon))) if expanding else horizon
     if task.periodic:
         region = max(region, min(horizon, sum(task.periodic)))
     attraction = task.attraction(0.0) if opts.attraction else None
+    sharing = task.gradient_sharing(0.0) if opts.gradient_sharing else None
+    helpers = [h for h in (attraction, sharing) if h is not None]
+    scales: list[float | None] = [None] * len(helpers)
     history, steps_used, iteration = [], 0, 0
     best = (np.inf, theta.copy())
     t0 = time.perf_counter()
@@ -91,17 +106,20 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
         actions = par.actions(theta)
         task.reset(sim, par.tool_position(theta))
         loss = task.loss(region)
-        if attraction is not None:
-            attraction.values.clear()
-            loss = loss + attraction
+        for h in helpers:
+            h.values.clear()
+            loss = loss + h
         res = sim.rollout(task.twists(actions[:region]), loss, grad=True)
         steps_used += region
         iteration += 1
-        task_loss = res.loss - (attraction.total if attraction is not None else 0.0)
+        task_loss = res.loss - sum(h.total for h in helpers)
+        for i, h in enumerate(helpers):  # 10 % of the task loss per unit of its value, from the first rollout
+            if scales[i] is None and sum(h.values.values()) > 0:  # in which the helper has a value
+                scales[i] = 0.1 * abs(task_loss) / sum(h.values.values())
         if attraction is not None:
-            if iteration == 1:  # 10 % of the task loss per unit of attraction, from the first rollout
-                attraction_scale = 0.1 * abs(task_loss) / max(sum(attraction.values.values()), 1e-12)
-            attraction.weight = attraction_scale * 0.5 ** iteration
+            attraction.weight = (scales[0] or 0.0) * 0.5 ** iteration
+        if sharing is not None:
+            sharing.weight = scales[-1] or 0.0
         ga = np.zeros((horizon, task.n_actions))
         ga[:region] = res.grad_actions[:, 0, list(task.action_axes)]
         g = par.gradient(ga, res.grad_tool_position[0])
@@ -125,5 +143,6 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     if not np.isfinite(best[0]):  # never reached the whole horizon: keep the last parameters
         best = (np.nan, theta)
     return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,
-                  {"soft_contact": opts.soft_contact, "expanding_region": opts.expanding_region,
-                   "attraction": opts.attraction, "parametrisation": par.name})
+                  {"soft_contact": opts.soft_contact, "expanding_region": expanding,
+                   "attraction": attraction is not None, "gradient_sharing": sharing is not None,
+                   "parametrisation": par.name})

@@ -66,6 +66,14 @@ class Task:
     flange_to_tool = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0, 1.0)  # tool frame in the flange frame (m, quaternion xyzw)
     sizes: dict[str, SizeConfig] = {}
     action_knots: int | None = None  # gradient methods optimise this many knots per axis instead of every step
+    # DP's temporally expanding region suits losses that a partial horizon already approaches; a task whose goal
+    # is a final state reached through a detour (tilt a glass and bring it back) sets this False
+    expanding_region = True
+    # std of DP's seeded noise on a task's starting motion (Task.initial_actions), as a fraction of
+    # max_tool_speed (DPOptions.initial_noise applies when the task starts from rest)
+    start_noise = 0.05
+    # DP's Adam step as a fraction of max_tool_speed, where the task needs another than DPOptions.learning_rate
+    learning_rate: float | None = None
     # particles at paper size: the paper's "about 100k"; a scene filled by an emitter, or a glass, holds fewer
     paper_particles: tuple[int, int] = (60_000, 140_000)
 
@@ -198,6 +206,11 @@ class Task:
         from fluidlab_core.tasks.losses import ToolAttraction
 
         return ToolAttraction(self.attraction_particles(), weight=weight)
+
+    def gradient_sharing(self, weight: float) -> losses.Loss | None:
+        """DP's gradient sharing term (tasks/losses.py: ShareWithLead, BodyAttraction), or None where the task
+        has none. The paper's released code has it in Pouring and Transporting only."""
+        return None
 
     def attraction_particles(self):
         return self.body_slice(self.target_body)

@@ -2,7 +2,7 @@
 trajectory (the arm moves the cone under the machine's fixed nozzle; the paper ran this task on a real Franka)
 and the shipped Pouring trajectory (the arm tilts the glass about its rim). Each is planned, streamed within
 the arm's limits (the twin applies libfranka's checks and would stop on a reflex) and recorded with the twin's
-fluid: the ice cream appears and grows in the recording, and the glass tilts and its liquid moves."""
+fluid: the ice cream appears and grows in the recording, and the glass pours its light liquid out."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,6 +15,13 @@ from .conftest import start_node
 from fluidlab_msgs.action import Execute  # noqa: E402
 
 from fluidlab_ros.recording import read_recording  # noqa: E402
+
+
+# the shipped pour, optimised at its own speed: 86 % of the light liquid and 3 % of the heavy one end below the
+# glass; on the twin (time scale 1.0 on the FR3), measured 79 % and 0 %. The bounds leave room for the twin's
+# stream under load (a late tick holds the arm's last velocity) and would still catch a glass that does not
+# pour (under 10 % at 1.45 rad of tilt) or tips both out.
+LIGHT_OUT, HEAVY_OUT = 0.5, 0.2
 
 
 def shipped(trajectories: Path, task: str) -> str:
@@ -34,6 +41,8 @@ def test_ice_cream_and_pouring_execute_on_the_twin_with_their_fluid(ros_env, cli
             assert "to the end of the motion" in result.message, result.message
             print(f"\n[{task}] {result.message}")
             results[task] = read_recording(Path(result.recording_path))
+            if task == "Pouring":
+                pour_scale = result.time_scale
 
         # the ice cream: nothing at the start, then a growing body that ends in the cone (it moved with the cone)
         clouds = results["IceCreamDynamic"].particles
@@ -42,20 +51,25 @@ def test_ice_cream_and_pouring_execute_on_the_twin_with_their_fluid(ros_env, cli
         final = clouds[-1][1]
         assert np.all(final[:, 2] > 0.0) and abs(float(np.median(final[:, 0])) - 0.5) < 0.03
 
-        # the pour: the arm tilts the glass past 75° about its rim and back, and the twin's liquid moves with it.
-        # The shipped pour was optimised at the simulation's speed (the glass at 86° within 0.4 s); the arm runs it
-        # about 9.5x slower (joint 7's acceleration), and the slow tilt pours far less: measured 0.7 % of the
-        # liquid below the glass at the end in the twin, against 76 % of the light liquid at the optimised speed
-        # (docs/tasks.md: a pour that an arm can run is an open problem).
+        # the pour: the arm tilts the glass past 75° about its rim and back, at about the speed it was optimised
+        # for (Pouring's tilt is bounded so that the FR3 follows it with little slow-down, docs/tasks.md), and the
+        # twin's light liquid ends on the table while most of the heavy one stays in the glass
         rec = results["Pouring"]
         from scipy.spatial.transform import Rotation
 
+        from fluidlab_core import tasks
+        from fluidlab_core.tasks.jet_and_glass import GLASS_BASE_Z
+
+        assert pour_scale <= 1.5, pour_scale
         tilt = Rotation.from_quat(rec.tool[1][:, 3:]).magnitude()
         assert tilt.max() > 1.3 and tilt[-1] < 0.2, (tilt.max(), tilt[-1])
-        clouds = rec.particles
-        start, end = clouds[0][1], clouds[-1][1]
-        assert len(start) == len(end) > 500
-        moved = np.linalg.norm(end - start, axis=1)
-        assert np.median(moved) > 0.002, np.median(moved)
+        bodies = {b.handle.name: b.handle.slice for b in tasks.make("Pouring", "small").scene().bodies}
+        start, end = rec.particles[0][1], rec.particles[-1][1]
+        assert len(start) == len(end) == bodies["light"].stop
+        light_out = float(np.mean(end[bodies["light"], 2] < GLASS_BASE_Z))
+        heavy_out = float(np.mean(end[bodies["heavy"], 2] < GLASS_BASE_Z))
+        print(f"[Pouring] time scale {pour_scale:.3g}: {light_out:.0%} of the light liquid and {heavy_out:.0%} of "
+              f"the heavy one ended below the glass")
+        assert light_out > LIGHT_OUT and heavy_out < HEAVY_OUT, (light_out, heavy_out)
     finally:
         assert node.stop() == 0, node.text()
