@@ -1,0 +1,94 @@
+"""Buoyancy in 3-D (the open problem of floating bodies, docs/engine.md): a 4 cm cube of 500 kg/m³ in 6 cm of
+water in a closed 12 cm box (the domain's walls), 24 cells across; the share of the cube below the far-field
+surface every 0.1 s. Archimedes: 0.50.
+
+    python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M]
+
+BODY: rigid | elastic. LIQUID: std (the catalogue's water) | nt (the same water without tension: p = max(0,
+−λ(J − 1)), J ≤ 1, a model registered here, as a user would). --drop M: the cube starts M above the flat
+surface (dropped); otherwise at Archimedes' depth (water filled around it), or --raise M above it.
+Appends its table to bench/results/buoyancy_3d.txt.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("body", choices=["rigid", "elastic"])
+    ap.add_argument("liquid", choices=["std", "nt"])
+    ap.add_argument("seconds", type=float)
+    ap.add_argument("--res", type=int, default=24)
+    ap.add_argument("--drop", type=float, default=None)
+    ap.add_argument("--raise", dest="lift", type=float, default=0.0)
+    args = ap.parse_args()
+    import taichi as ti
+
+    import fluidlab_core as fl
+    from fluidlab_core import materials as M
+    from fluidlab_core.engine import constitutive
+    from fluidlab_core.shapes import Box
+
+    @constitutive.register("liquid_no_tension", params=("lam",), needs_svd=False)
+    @ti.func
+    def liquid_no_tension(F, C, prm, U, sig, V):
+        J = ti.min(F.determinant(), 1.0)
+        return (ti.Matrix.identity(float, 3) * ti.pow(ti.max(J, 1e-6), 1.0 / 3.0),
+                ti.Matrix.identity(float, 3) * (prm.lam * J * (J - 1.0)))
+
+    @dataclass(frozen=True)
+    class NoTensionLiquid(M.NewtonianLiquid):
+        model: ClassVar[str] = "liquid_no_tension"
+
+    fl.init("cpu")
+    width, level, b, rho = 0.12, 0.06, 0.04, 500.0
+    water = M.WATER if args.liquid == "std" else NoTensionLiquid("water_no_tension", density=M.WATER.density,
+                                                                  bulk_modulus=M.WATER.bulk_modulus)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1)
+    c = width / 2
+    if args.drop is not None:
+        bottom = level + args.drop
+        boxes = [((0, 0, 0), (width, width, level))]
+    else:
+        bottom = level - b * rho / M.WATER.density + args.lift
+        lo_c, hi_c = c - b / 2, c + b / 2
+        boxes = [((0, 0, 0), (width, width, bottom)), ((0, 0, bottom), (lo_c, width, level)),
+                 ((hi_c, 0, bottom), (width, width, level)), ((lo_c, 0, bottom), (hi_c, lo_c, level)),
+                 ((lo_c, hi_c, bottom), (hi_c, width, level))]
+    for lo, hi in boxes:
+        scene.add_particles(Box(lo, hi), water)
+    body = M.Rigid("light_rigid", density=rho) if args.body == "rigid" else \
+        M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
+    scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)), body, name="cube")
+    scene.substeps = scene.stable_substeps()
+    sim = scene.build()
+    dx, s = width / args.res, scene.particle_spacing
+    waters = [h for h in sim.handles if h != "cube"]
+    t0, rows = time.time(), []
+    while sim.time < args.seconds - 1e-9:
+        sim.step(n=int(round(0.1 / scene.dt)))
+        xw = np.concatenate([sim.positions(h) for h in waters])
+        far = (np.abs(xw[:, 0] - c) > 0.04) | (np.abs(xw[:, 1] - c) > 0.04)
+        surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
+        xc = sim.positions("cube")
+        depth = (surface - (xc[:, 2].min() - 0.5 * s)) / b  # the cube's lowest face below the surface, over b
+        rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
+    start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
+        f"at Archimedes' depth + {args.lift * 1e3:g} mm"
+    text = "\n".join([f"{args.body} cube in {args.liquid} water, {args.res} cells, {start}: {len(sim.positions())} "
+                      f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
+                      f"{'t s':>5} {'depth / b':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"
+    print(text)
+    with open(Path(__file__).resolve().parent / "results" / "buoyancy_3d.txt", "a") as f:
+        f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
