@@ -15,8 +15,9 @@ The techniques of Xian et al. (2023, §5), each switchable:
   horizon is reached by half of the budget. Not for a task that sets `expanding_region = False` (Pouring: its
   goal is the state after a pour and the way back, which no partial horizon approaches).
 - attraction: add w·Σ_k |p_tool(k) − x̄_body(k)|² (horizontal), which pulls the tool towards the fluid it
-  must move, where the task loss alone has no gradient (a stand-in for the paper's gradient sharing within a
-  fluid body). w starts at 10 % of the task loss per unit of attraction and decays by half each iteration.
+  must move, where the task loss alone has no gradient (the project's own, used before the paper's gradient
+  sharing below existed here). w starts at 10 % of the task loss per unit of attraction and decays by half
+  each iteration.
 - gradient sharing within fluid bodies, where the task defines it (`Task.gradient_sharing`: Pouring and
   Transporting, as in the paper's released code; tasks/losses.py gives the terms): particles the tool does not
   move are tied to those it does, so that they carry a gradient. Its weight is set once, to 10 % of the task
