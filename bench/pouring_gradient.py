@@ -2,9 +2,10 @@
 loss, at the task's starting pour (Task.initial_actions), over the whole 8 s horizon.
 
     python bench/pouring_gradient.py [--knots 3 5 7 9] [--eps 0.02 0.005]
+    python bench/pouring_gradient.py --short      # 200 steps, float64, a smooth loss, steps from 5e-3 to 1e-6
 
-Writes bench/results/pouring_gradient_small.txt. Finite differences use the simulator the gradient came from
-(float32 CPU), with steps of eps rad/s on one knot.
+Writes bench/results/pouring_gradient_small.txt (--short: pouring_gradient_short.txt). Finite differences use
+the simulator the gradient came from, with steps of eps rad/s on one knot.
 """
 from __future__ import annotations
 
@@ -19,8 +20,15 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--knots", type=int, nargs="+", default=[3, 5, 7, 9])
     ap.add_argument("--eps", type=float, nargs="+", default=[0.02, 0.005])
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "pouring_gradient_small.txt"))
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--short", action="store_true",
+                    help="the first 200 steps in float64 with a smooth loss (mean squared distance of every particle "
+                         "to a point), knot 1, eps 5e-3 1e-4 1e-6: is the loss smooth at the scale of the step?")
     args = ap.parse_args()
+    results = Path(__file__).resolve().parent / "results"
+    if args.short:
+        return short(results / "pouring_gradient_short.txt")
+    args.out = args.out or str(results / "pouring_gradient_small.txt")
     import fluidlab_core
     from fluidlab_core import tasks
     from fluidlab_core.optim import params as P
@@ -56,6 +64,40 @@ def main():
         print(lines[-1], flush=True)
     lines.append("gradient at every knot: " + " ".join(f"{g:.3g}" for g in grad[: par.n_action_params]))
     Path(args.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6)):
+    import fluidlab_core
+    from fluidlab_core import losses, tasks
+    from fluidlab_core.optim import params as P
+
+    fluidlab_core.init("cpu", precision="f64")
+    task = tasks.make("Pouring", "small")
+    par = P.default(task)
+    theta = np.zeros(par.size)
+    theta[: par.n_action_params] = np.linalg.lstsq(par.matrix, task.initial_actions().reshape(-1), rcond=None)[0]
+    sim = task.simulator(grad=True, contact="soft")
+
+    def run(th, grad):
+        task.reset(sim, par.tool_position(th))
+        loss = losses.MeanSquaredDistance(np.array([0.5, 0.0, 0.0]))  # smooth in the particles
+        return sim.rollout(task.twists(par.actions(th)[:steps]), loss, grad=grad)
+
+    res = run(theta, True)
+    ga = np.zeros((task.horizon, task.n_actions))
+    ga[:steps] = res.grad_actions[:, 0, list(task.action_axes)]
+    g = par.gradient(ga, res.grad_tool_position[0])[knot]
+    lines = [f"Pouring (small), the first {steps} steps in float64, loss: mean squared distance of every particle to "
+             f"(0.5, 0, 0) (m²), at the starting pour; knot {knot}: gradient {g:.4g} (m² per rad/s).",
+             f"forward loss: differentiable solver {res.loss:.12g}, fast solver {run(theta, False).loss:.12g}"]
+    for e in eps:
+        d = np.zeros_like(theta)
+        d[knot] = e
+        fd = (run(theta + d, False).loss - run(theta - d, False).loss) / (2 * e)
+        lines.append(f"central difference with a step of {e:g} rad/s: {fd:.4g}")
+        print(lines[-1], flush=True)
+    out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
