@@ -37,7 +37,7 @@ def main():
     task = tasks.make("Pouring", "small")
     par = P.default(task)
     theta = np.zeros(par.size)
-    theta[: par.n_action_params] = np.linalg.lstsq(par.matrix, task.initial_actions().reshape(-1), rcond=None)[0]
+    theta[: par.n_action_params] = par.fit(task.initial_actions())
     sim = task.simulator(grad=True, contact="soft")
     t0 = time.perf_counter()
     task.reset(sim, par.tool_position(theta))
@@ -76,7 +76,7 @@ def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6)):
     task = tasks.make("Pouring", "small")
     par = P.default(task)
     theta = np.zeros(par.size)
-    theta[: par.n_action_params] = np.linalg.lstsq(par.matrix, task.initial_actions().reshape(-1), rcond=None)[0]
+    theta[: par.n_action_params] = par.fit(task.initial_actions())
     sim = task.simulator(grad=True, contact="soft")
 
     def run(th, grad):

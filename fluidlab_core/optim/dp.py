@@ -82,8 +82,7 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     if start is not None:  # the task's documented starting motion (Task.initial_actions), in the parametrisation,
         # with less noise than a start from rest: the motion is there to be refined, not scrambled (Pouring's
         # pour turns on a tenth of a radian of tilt; DP's noise at rest scrambles its tilt by about 0.5 rad)
-        fit = np.linalg.lstsq(par.matrix, np.asarray(start, dtype=np.float64).reshape(-1), rcond=None)[0]
-        theta[: par.n_action_params] += fit
+        theta[: par.n_action_params] += par.fit(start)
     theta = par.clip(theta)
     rate = task.learning_rate if task.learning_rate is not None else opts.learning_rate
     lr = np.concatenate([np.full(par.n_action_params, rate * task.max_tool_speed),

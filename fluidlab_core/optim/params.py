@@ -59,6 +59,10 @@ class Parametrisation:
         pos[self._axes] += theta[self.n_action_params:]
         return pos
 
+    def fit(self, actions) -> np.ndarray:
+        """The action parameters whose actions are nearest (least squares) to (N, k) `actions`."""
+        return np.linalg.lstsq(self.matrix, np.asarray(actions, dtype=np.float64).reshape(-1), rcond=None)[0]
+
     def gradient(self, grad_actions, grad_tool_position) -> np.ndarray:
         """dL/dθ from dL/d actions (N, k) and dL/d initial tool position (3,)."""
         ga = self.matrix.T @ np.asarray(grad_actions, dtype=np.float64).reshape(-1)
@@ -127,6 +131,6 @@ def default(task) -> Parametrisation:
     open-loop sequence with per-step noise would break), open loop otherwise."""
     if task.periodic:
         return periodic(task)
-    if getattr(task, "action_knots", None):
+    if task.action_knots:
         return knots(task, task.action_knots)
     return open_loop(task)
