@@ -26,8 +26,16 @@ INSTALL_REQUIRES = [
 # example-robot-data (414 MB of meshes) is only the Panda URDF that tests/test_pipeline.py cross-checks
 # robot_models/ against; it is a test extra, not a runtime dependency.
 # pytest-xdist runs the test files in two processes, overlapping Taichi compilation (README).
-# mcap: an MCAP reader independent of rosbags, to check the recordings.
-TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0"]
+# mcap: an MCAP reader independent of rosbags, to check the recordings (fluidlab_ros.recording also needs it at
+# run time: requirements-ros.txt).
+# colcon: tests/ros/test_colcon_build.py builds the repository with colcon as a ROS 2 Jazzy machine would. Only
+# what that build uses, each pinned (colcon-ros pulls in the others unpinned): colcon-core 0.21.3 itself depends on
+# pytest-cov, pytest-repeat and pytest-rerunfailures, which stay inactive unless their options are given.
+COLCON = ["colcon-core==0.21.3", "colcon-ros==0.5.0", "colcon-python-setup-py==0.2.9", "colcon-cmake==0.2.30",
+          "colcon-library-path==0.2.1", "colcon-pkg-config==0.1.0", "colcon-recursive-crawl==0.2.3",
+          "colcon-test-result==0.3.8", "colcon-bash==0.5.0", "colcon-package-selection==0.2.10",
+          "colcon-package-information==0.4.1"]
+TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0", *COLCON]
 
 setup(
     name=PACKAGE,
@@ -45,6 +53,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
+        # `ros2 launch fluidlab_ros sim_node.launch.py` looks in share/fluidlab_ros/launch
+        (f"share/{PACKAGE}/launch", ["launch/sim_node.launch.py"]),
     ],
     entry_points={"console_scripts": ["fluidlab = fluidlab_core.cli:main",
                                     "sim_node = fluidlab_ros.sim_node:main",

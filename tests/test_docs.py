@@ -5,8 +5,10 @@
 - `bash` blocks: each command is checked against what it calls. `fluidlab ...` commands are parsed by the
   `fluidlab` argument parser (a misspelt option or sub-command fails), and `fluidlab list` / `materials` run;
   `python <script> --options` must name a script in the repository whose --help lists every option used;
-  `sim_node` / `ros2 run fluidlab_ros sim_node` may only set parameters (-p name:=value) that the node declares.
-  Set-up commands (venv, pip, colcon, source) are not run here: the README's test command is what `.ci/run`
+  `sim_node` / `ros2 run fluidlab_ros sim_node` (or a colcon-installed `.../lib/fluidlab_ros/sim_node`) may only set
+  parameters (-p name:=value) that the node declares; `ros2 launch fluidlab_ros sim_node.launch.py` may only set
+  arguments (name:=value) that launch/sim_node.launch.py declares.
+  Set-up commands (venv, pip, colcon, rosdep, source) are not run here: the README's test command is what `.ci/run`
   runs (checked below, to the character), and its install command is the first half of that.
 - `yaml` blocks parse; `text` blocks are diagrams and listings. A block without a language is refused, so that
   a new block is never silently skipped.
@@ -25,7 +27,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 LANGUAGES = ("python", "bash", "yaml", "text")
-SETUP = {"python3", "pip", "source", "colcon", "git", "cd", "export", "rm", "mkdir"}
+SETUP = {"python3", "pip", "source", "colcon", "rosdep", "git", "cd", "export", "rm", "mkdir"}
 
 
 def doc_files() -> list[Path]:
@@ -127,6 +129,16 @@ def test_documented_command(item, sim_node_parameters):
             if "FLUIDLAB_TASKS" in env:
                 assert "ToyPush" in out.stdout, out.stdout
         return
+    if prog == "ros2" and cmd[1] == "launch":
+        assert cmd[2:4] == ["fluidlab_ros", "sim_node.launch.py"], f"{where}: unknown launch file"
+        declared = launch_arguments()
+        unknown = [w.split(":=")[0] for w in cmd[4:] if ":=" in w and w.split(":=")[0] not in declared]
+        assert not unknown, f"{where}: launch/sim_node.launch.py declares no argument {unknown}"
+        options = [w for w in cmd[4:] if ":=" not in w]
+        assert set(options) <= {"--show-args", "-s", "--debug", "-d"}, f"{where}: unknown ros2 launch options"
+        return
+    if prog.endswith("/lib/fluidlab_ros/sim_node"):
+        prog = "sim_node"  # the colcon-installed executable that `ros2 run fluidlab_ros sim_node` starts
     if prog in ("sim_node", "ros2"):
         if prog == "ros2":
             assert cmd[1:4] == ["run", "fluidlab_ros", "sim_node"], f"{where}: unknown ros2 use"
@@ -152,6 +164,22 @@ def test_documented_command(item, sim_node_parameters):
         assert (BIN / prog).exists()
         return
     pytest.fail(f"{where}: the docs test does not know how to check {prog!r}; teach it (tests/test_docs.py)")
+
+
+def launch_arguments() -> set[str]:
+    """The arguments launch/sim_node.launch.py declares: its ARGUMENTS table and DeclareLaunchArgument calls with a
+    literal name (read with ast: launch has no wheel)."""
+    import ast
+
+    tree = ast.parse((ROOT / "launch" / "sim_node.launch.py").read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign) and [getattr(t, "id", None) for t in node.targets] == ["ARGUMENTS"]:
+            names |= set(ast.literal_eval(node.value))
+        if (isinstance(node, ast.Call) and getattr(node.func, "id", None) == "DeclareLaunchArgument"
+                and node.args and isinstance(node.args[0], ast.Constant)):
+            names.add(node.args[0].value)
+    return names
 
 
 def _env(path: Path, line: int) -> list[str]:
