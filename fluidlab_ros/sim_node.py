@@ -35,11 +35,9 @@ kind runs is rejected.
 from __future__ import annotations
 
 import dataclasses
-import gc
 import json
 import math
 import multiprocessing as mp
-import os
 import queue
 import signal
 import sys
@@ -75,9 +73,10 @@ from fluidlab_ros.frames import se3_to_pose
 from fluidlab_ros.messages import marker, point_cloud, pose_msg
 from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
-from fluidlab_ros.pipeline import command_budgets
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
+from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, RunBuffer, StreamProcess, row_state,
+                                 rows_for, write_row)
 from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
 from fluidlab_ros import workers
@@ -111,7 +110,7 @@ PARAMETERS = {
     "state_publish_rate": (50.0, "Hz of the twin joint states and tool pose"),
     "twin_initial_positions": (READY_Q.tolist(), "the twin arm's joint positions at start (rad)"),
     "cancel_timeout": (0.5, "s an optimiser gets to stop after a cancel before it is terminated"),
-    "realtime_priority": (10, "SCHED_FIFO priority of the command-stream thread (0: normal scheduling)"),
+    "realtime_priority": (10, "SCHED_FIFO priority of the command-stream process (0: normal scheduling)"),
     "feedback_gain": (2.0, "1/s: position feedback on the verified profile (0: off)"),
     "feedback_max_velocity": (0.05, "rad/s: the largest feedback correction"),
     "record": (True, "record every execution as rosbag2 MCAP (docs/replay.md)"),
@@ -130,12 +129,14 @@ def parameters_help() -> str:
 
 @dataclass
 class Stream:
-    """One command stream in flight (the execute goal's), shared by the stream thread and the goal."""
+    """One command stream in flight (the execute goal's): the stream process sends it (fluidlab_ros.stream);
+    the node's follower thread reads its RunBuffer and fills these in."""
 
     plan: object
     to_robot: bool
+    buf: object = None  # stream.RunBuffer shared with the stream process
+    proc: object = None  # the stream.StreamProcess that sends it
     index: int = 0  # commands sent
-    stop_reason: str = ""  # set to ask for a ramp to rest
     outcome: str = ""  # why it ended: "done", or the stop reason
     reflex: str = ""
     phase: str = "approach"
@@ -154,6 +155,15 @@ class Stream:
     fluid_final: threading.Event = field(default_factory=threading.Event)  # the fluid's final state arrived
     fluid_clouds: int = 0  # particle clouds recorded
     fluid_pending: list = field(default_factory=list)  # clouds that came before the recording's metadata
+
+    def request_stop(self, reason: str):
+        """Ask the stream for a ramp to rest (the first reason is kept)."""
+        if self.buf is not None:
+            self.buf.request_stop(reason)
+
+    @property
+    def stop_reason(self) -> str:
+        return self.buf.stop_reason() if self.buf is not None else ""
 
 
 class SimNode(Node):
@@ -279,6 +289,15 @@ class SimNode(Node):
         self._closing = threading.Event()  # set by shutdown(): the particle thread ends before rclpy does
         self._particle_thread = threading.Thread(target=self._particle_loop, daemon=True)
         self._particle_thread.start()
+        # the command stream's own process (fluidlab_ros.stream), started now so that its publishers are
+        # discovered long before the first command; replaced if it dies
+        self._stream_config = {
+            "robot_model": self.robot_model, "mode": self.mode, "node_name": self.get_name(),
+            "commands_topic": self.pub_commands.topic_name,
+            "controller_topic": self.pub_controller.topic_name if self.pub_controller is not None else "",
+            "joint_state_topic": self.joint_state_topic, "joint_state_qos": js_qos,
+            "realtime_priority": self.realtime_priority}
+        self._stream_proc = self._start_stream_process()
         self.get_logger().info(
             f"sim_node up: mode {self.mode}, robot {self.robot_model}, {self.control_rate:g} Hz, trajectories in "
             f"{self.store.folder}" + (f", commands to {self.command_topic} when armed, joint states from "
@@ -338,7 +357,7 @@ class SimNode(Node):
         if stream is None:
             response.success, response.message = True, "the arm is not being commanded; nothing to stop"
             return response
-        stream.stop_reason = stream.stop_reason or "stopped by ~/stop"
+        stream.request_stop("stopped by ~/stop")
         response.success, response.message = True, "ramping the arm to rest"
         return response
 
@@ -365,7 +384,7 @@ class SimNode(Node):
             self.armed = False
             stream = self.stream
             if stream is not None and stream.to_robot:
-                stream.stop_reason = stream.stop_reason or "disarmed"
+                stream.request_stop("disarmed")
             response.success, response.message = True, "disarmed"
             self.get_logger().info("disarmed")
         return response
@@ -630,18 +649,36 @@ class SimNode(Node):
         if stream.recorder is not None:
             stream.metadata = self._recording_metadata(g, loaded, mounting, pl, target)
             self._recording = stream  # before the fluid's reset: its first cloud comes within milliseconds
+        sp = self._stream_proc
+        if not sp.wait_ready(30.0):
+            self._planning = False
+            if self._recording is stream:
+                self._recording = None
+            if stream.recorder is not None:
+                stream.recorder.close()
+            self._stream_proc = self._start_stream_process()
+            result.success, result.message = False, ("the command stream process is not running (it did not start "
+                                                     "within 30 s); nothing sent; a new one is starting")
+            self.get_logger().error(result.message)
+            goal_handle.abort()
+            return result
         if self.fluid_twin:
             self._fluid_reset(traj, stream)
+        stream.proc = sp
+        stream.buf = RunBuffer(rows_for(len(pl.velocities), self.control_rate), self.limits.dof)
         self.stream = stream
         self._planning = False
-        thread = threading.Thread(target=self._stream_loop, args=(stream, traj), name="command-stream", daemon=True)
+        thread = threading.Thread(target=self._follow, args=(stream, traj), name="stream-follower", daemon=True)
         self.get_logger().info(f"executing on the {target}: {summary}")
         thread.start()
         plan_tool = None
         worst = 0.0
         while not stream.done.wait(0.1):
             if goal_handle.is_cancel_requested:
-                stream.stop_reason = stream.stop_reason or "cancelled"
+                stream.request_stop("cancelled")
+            fluid = self._fluid
+            if stream.fluid_epoch >= 0 and fluid is not None and not fluid[2].is_alive():
+                stream.request_stop(f"the fluid twin's worker process died (exit code {fluid[2].exitcode})")
             k = min(stream.index, len(pl.positions) - 1)
             q = self._arm_positions()
             err = 0.0
@@ -739,167 +776,187 @@ class SimNode(Node):
                 "q_start": pl.q_start.tolist()}
         return meta
 
-    def _record(self, stream: Stream, k: int, command: np.ndarray, fk: Robot):
-        """Command k (or a stop-ramp command, k = -1) went out: record it with the arm states and tool poses."""
-        rec = stream.recorder
-        stamp = time.time_ns()
-        rec.put("/sim_node/commands", stream.last_msg, stamp)
+    def _record(self, stream: Stream, i: int, fk: Robot):
+        """Row i of the run buffer (a command that went out, k >= 0 of the plan or -1 of a ramp): record it, and
+        with every STATE_EVERY-th the arm states and tool poses."""
+        rec, buf = stream.recorder, stream.buf
+        stamp = int(buf.stamp[i])
+        command = buf.command[i]
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
+        msg.data = command[self.controller_order].tolist()
+        rec.put("/sim_node/commands", msg, stamp)
         stream.recorded += 1
         if (stream.recorded - 1) % STATE_EVERY:
-            return  # states and poses at control_rate / STATE_EVERY: the stream thread's time is precious
-        q, v = self.twin.state()
+            return  # states and poses at control_rate / STATE_EVERY
         names = list(self.robot.joint_names)
-        js = JointState(name=names, position=q.tolist(), velocity=v.tolist())
+        js = JointState(name=names, position=buf.q[i].tolist(), velocity=buf.v[i].tolist())
         js.header.stamp.sec, js.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
         rec.put("/sim_node/twin/joint_states", js, stamp)
         if self.mode != "robot" or not stream.to_robot:
             rec.put("/sim_node/measured_joint_states", js, stamp)
+        k = int(buf.k[i])
         if k >= 0:
             pj = JointState(name=names, position=stream.plan.positions[k].tolist())
             pj.header.stamp = js.header.stamp
             rec.put("/sim_node/planned_joint_states", pj, stamp)
             rec.put("/sim_node/planned_tool_pose", pose_msg(stream.planned_tool[k], self.robot.base_frame, stamp), stamp)
-        arm_q = self._arm_positions()
+        arm_q = buf.q[i] if not stream.to_robot else self._arm_positions()
         if arm_q is not None:
             rec.put("/sim_node/tool_pose", pose_msg(se3_to_pose(fk.frame_placement(arm_q)), self.robot.base_frame,
                                                      stamp), stamp)
 
     def _send(self, stream: Stream, command: np.ndarray, now: float) -> str:
-        """Publish one command (and give it to the twin); returns a reason to stop, or ''."""
+        """Publish one command from this process (the take-over ramp after the stream process failed), give it
+        to the twin and write its row; returns a reason to stop, or ''."""
         msg = Float64MultiArray()
         msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
         msg.data = command[self.controller_order].tolist()
         self.pub_commands.publish(msg)
-        stream.last_msg = msg
         if stream.to_robot and self.pub_controller is not None:
             self.pub_controller.publish(msg)
-        reflex = self.twin.command(command, now)
+        try:
+            reflex = write_row(stream.buf, -1, command, self.twin, now)
+        except RuntimeError:  # the buffer is full: the command went out all the same
+            reflex = self.twin.command(command, now)
         if reflex is not None:
             self.last_reflex = reflex.message()
             stream.reflex = reflex.message()
             return "the twin arm stopped with a reflex"
         return ""
 
-    def _stream_loop(self, stream: Stream, traj):
-        """Absolute-deadline loop (Schedule): command k goes out at t0 + k T, never closer than T / 2 to the
-        previous one; a tick later than late_tick_limit stops the stream."""
-        pl = stream.plan
+    def _start_stream_process(self) -> StreamProcess:
+        sp = StreamProcess(self._mp, self._stream_config)
+
+        def report():
+            if sp.wait_ready(60.0):
+                self.get_logger().info(f"command stream process {sp.ready['pid']} ready: {sp.ready['realtime']}")
+                if not sp.ready["realtime"].startswith("SCHED_FIFO") and self.realtime_priority > 0:
+                    self.get_logger().warn(f"the command stream runs with {sp.ready['realtime']}")
+            elif not self._closing.is_set():
+                self.get_logger().error("the command stream process did not start")
+        threading.Thread(target=report, daemon=True).start()
+        return sp
+
+    def _follow(self, stream: Stream, traj):
+        """The node's side of a stream: hand the plan to the stream process, then, once a control period,
+        read the rows it wrote (record them, feed the fluid twin, mirror the twin arm) and watch it. If the
+        process dies, or its heartbeat is older than late_tick_limit (a stall), the node kills it, sends the
+        stop ramp itself from the last command, and starts a new stream process."""
+        from multiprocessing.connection import wait
+
+        pl, buf, sp = stream.plan, stream.buf, stream.proc
         T = 1.0 / self.control_rate
-        cmds = pl.velocities
         n_task0 = int(round(pl.task_start_time * self.control_rate))
         n_task1 = int(round(pl.task_end_time * self.control_rate))
         fluid_every = max(1, int(round(traj.dt * self.control_rate)))
-        fk = stream.fk  # built before the thread: parsing a URDF takes tens of ms
-        if self.realtime_priority > 0:
-            try:  # SCHED_FIFO for this thread only (Linux: pid 0 is the calling thread)
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
-            except (OSError, AttributeError) as err:
-                if not getattr(self, "_rt_warned", False):
-                    self._rt_warned = True
-                    self.get_logger().warn(f"the command stream runs without real-time priority ({err}); give the "
-                                           f"process CAP_SYS_NICE (or rtprio in limits.conf) for fewer late ticks")
-        last, prev = np.zeros(self.limits.dof), np.zeros(self.limits.dof)
-        # The cyclic garbage collector stops every thread while it runs (tens of ms over a large heap, seen as
-        # late ticks); during the stream, memory is freed by reference counting alone, and collected after.
-        gc_was_enabled = gc.isenabled()
-        gc.disable()
         lead = 0.05  # s from now to the first command: the same instant on both clocks
-        stream.t0, start_wall = time.monotonic() + lead, time.time() + lead
-        stream.start_ns = int(start_wall * 1e9)
+        t0, start_wall = time.monotonic() + lead, time.time() + lead
+        stream.t0, stream.start_ns = t0, int(start_wall * 1e9)
+        buf.floats[HEARTBEAT] = t0
         if stream.recorder is not None:
             stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
                 "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
             stream.recorder.write_metadata(stream.metadata)
-        clock = Schedule(T, stream.t0)
-        # Position feedback on top of the verified profile: a late command is held by the arm, which then
-        # drifts from the plan by (lateness x velocity). The correction u_k follows gain x (q_plan[k] - q_arm)
-        # but changes by at most delta per command (a ninth of the planning acceleration budget: the planner
-        # keeps 10 % of margin x limit spare, PLAN_FRACTION) and stays within feedback_max_velocity, so the
-        # commands stay within margin x limits; it is ramped out after the plan's last command.
-        a_plan, _ = command_budgets(self.limits, self.control_rate, self.margin)
-        delta = a_plan * T / 9.0
-        corr = np.zeros(self.limits.dof)
-
-        def corrected(k: int) -> np.ndarray:
-            nonlocal corr
-            if self.feedback_gain > 0:
-                q_arm = self._arm_positions()
-                if q_arm is not None:
-                    target = np.clip(self.feedback_gain * (pl.positions[k] - q_arm), -self.feedback_max_velocity,
-                                     self.feedback_max_velocity)
-                    corr = corr + np.clip(target - corr, -delta, delta)
-            return cmds[k] + corr
-
-        reason = ""
+        job = {"buffer": buf.spec(), "velocities": pl.velocities, "positions": pl.positions,
+               "control_rate": self.control_rate, "controller_order": self.controller_order,
+               "to_robot": stream.to_robot, "mode": self.mode, "late_tick_limit": self.late_tick_limit,
+               "joint_state_timeout": self.joint_state_timeout, "joint_state_topic": self.joint_state_topic,
+               "n_task0": n_task0, "twin": self.twin.snapshot(), "feedback_gain": self.feedback_gain,
+               "feedback_max_velocity": self.feedback_max_velocity, "margin": self.margin, "t0": t0}
+        sp.jobs.put(job)
+        seen = 0
+        failure = ""
         try:
-            for k in range(len(cmds)):
-                now, late = clock.wait()
-                stream.late_ticks, stream.max_late = clock.late_ticks, clock.max_late
-                late_reason = ""
-                if late > self.late_tick_limit:
-                    late_reason = (f"control tick {k} was {late * 1e3:.1f} ms late (late_tick_limit "
-                                   f"{self.late_tick_limit * 1e3:g} ms)")
-                if stream.stop_reason:  # asked for first: a stall while the request arrived does not hide it
-                    reason = stream.stop_reason + (f"; {late_reason}" if late_reason else "")
+            while True:
+                died = wait([sp.proc.sentinel], timeout=T)
+                seen = self._drain(stream, seen, n_task0, n_task1, fluid_every)
+                try:
+                    msg = sp.results.get_nowait()
+                except (queue.Empty, OSError, ValueError, EOFError):
+                    msg = None
+                if msg is not None and msg.get("kind") == "done":
+                    seen = self._drain(stream, seen, n_task0, n_task1, fluid_every)
+                    self.twin.restore(msg["twin"])
+                    stream.outcome = msg["outcome"]
+                    if msg["reflex"] is not None:
+                        stream.reflex = self.last_reflex = msg["reflex"].message()
                     break
-                if late_reason:
-                    reason = late_reason
+                if died:
+                    sp.proc.join(1.0)  # the sentinel is ready before the exit code is collected
+                    failure = f"the command stream process died (exit code {sp.proc.exitcode})"
                     break
-                if stream.to_robot:
-                    age = self._joint_state_age()
-                    if age > self.joint_state_timeout:
-                        reason = (f"joint states on {self.joint_state_topic} stopped for {age * 1e3:.0f} ms "
-                                  f"(joint_state_timeout {self.joint_state_timeout * 1e3:g} ms)")
-                        break
-                    if not self.armed:
-                        reason = "disarmed"
-                        break
-                stream.phase = "approach" if k < n_task0 else "task"
-                command = corrected(k)
-                reason = self._send(stream, command, now)
-                if stream.recorder is not None:
-                    self._record(stream, k, command, fk)
-                prev, last = last, command
-                stream.index = k + 1
-                if reason:
+                stall = time.monotonic() - float(buf.floats[HEARTBEAT])
+                if not buf.ints[DONE] and stall > self.late_tick_limit + T:
+                    failure = (f"the command stream process stalled: no command for {stall * 1e3:.0f} ms "
+                               f"(late_tick_limit {self.late_tick_limit * 1e3:g} ms)")
                     break
-                if self.fluid_twin and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
-                    self._fluid_pose(fk, last=(k + fluid_every >= n_task1))
-            else:
-                while np.any(corr):  # ramp the correction out: the stream ends with an exact zero
-                    corr = corr - np.clip(corr, -delta, delta)
-                    now, _ = clock.wait()
-                    if self._send(stream, corr.copy(), now):
-                        break
-                    if stream.recorder is not None:
-                        self._record(stream, -1, corr.copy(), fk)
-                stream.outcome = "done"
-                return
-            stream.outcome = reason
-            stream.phase = "stopping"
-            self.get_logger().warn(f"stopping the stream: {reason}")
-            if stream.reflex:
-                return  # the arm (twin) already stopped; nothing more is accepted
-            # the ramp keeps the same never-bunch schedule (a burst of late ramp commands would reach the arm
-            # as one jump), starting one period after the last command
-            for command in stop_ramp(last, prev, self.control_rate, self.limits, self.margin):
-                now, _ = clock.wait()
-                stopped = self._send(stream, command, now)
-                if stream.recorder is not None:
-                    self._record(stream, -1, command, fk)
-                if stopped:
-                    break
-        except Exception as err:  # noqa: BLE001 - whatever happens, the stream ends and the goal learns why
-            stream.outcome = f"internal error in the command stream: {err}"
+            if failure:
+                self._take_over(stream, failure, n_task0, n_task1, fluid_every, seen)
+            if stream.outcome != "done":
+                self.get_logger().warn(f"the stream stopped: {stream.outcome}")
+        except Exception as err:  # noqa: BLE001 - the goal must learn why and the arm must get a stop
+            stream.outcome = f"internal error following the command stream: {err!r}"
             self.get_logger().error(stream.outcome)
+            sp.kill()
+            self._stream_proc = self._start_stream_process()
             try:
                 self._send(stream, np.zeros(self.limits.dof), time.monotonic())
             except Exception:  # noqa: BLE001
                 pass
         finally:
-            if gc_was_enabled:
-                gc.enable()
+            stream.late_ticks, stream.max_late = int(buf.ints[LATE_TICKS]), float(buf.floats[MAX_LATE])
+            stream.phase = "done"
+            buf.close()
             stream.done.set()
+
+    def _take_over(self, stream: Stream, failure: str, n_task0: int, n_task1: int, fluid_every: int, seen: int):
+        """The stream process failed mid-stream: kill it (a stalled one must never resume sending), ramp the
+        arm to rest from this process, and start a new stream process for the next goal."""
+        self.get_logger().error(f"{failure}; the node sends the stop ramp")
+        stream.proc.kill()
+        self._stream_proc = self._start_stream_process()
+        buf = stream.buf
+        n = buf.count
+        self._drain(stream, seen, n_task0, n_task1, fluid_every)
+        last = buf.command[n - 1].copy() if n else np.zeros(self.limits.dof)
+        prev = buf.command[n - 2].copy() if n > 1 else np.zeros(self.limits.dof)
+        if n:  # the arm held the last command since it went out; the twin goes on from there
+            self.twin.restore(row_state(buf, n - 1))
+        stream.outcome = failure
+        stream.phase = "stopping"
+        T = 1.0 / self.control_rate
+        clock = Schedule(T, time.monotonic())
+        for command in stop_ramp(last, prev, self.control_rate, self.limits, self.margin):
+            now, _ = clock.wait()
+            if self._send(stream, command, now):
+                break
+        self._drain(stream, n, n_task0, n_task1, fluid_every)
+
+    def _drain(self, stream: Stream, seen: int, n_task0: int, n_task1: int, fluid_every: int) -> int:
+        """Read the rows written since `seen`: record them, send the fluid twin the tool poses it steps to,
+        mirror the twin arm; returns the new count."""
+        buf = stream.buf
+        n = buf.count
+        if n <= seen:
+            return seen
+        fk = stream.fk
+        for i in range(seen, n):
+            if stream.recorder is not None:
+                self._record(stream, i, fk)
+            k = int(buf.k[i])
+            if self.fluid_twin and n_task0 <= k < n_task1 and (k - n_task0) % fluid_every == 0:
+                q = buf.q[i] if not stream.to_robot else self._arm_positions()
+                if q is not None and self._fluid is not None:
+                    self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(),
+                                        "last": k + fluid_every >= n_task1, "epoch": self._fluid_epoch.value,
+                                        "stamp": int(buf.stamp[i])})
+        if not buf.ints[DONE]:
+            self.twin.restore(row_state(buf, n - 1))
+        stream.index = int(buf.ints[INDEX])
+        stream.phase = buf.phase
+        stream.late_ticks, stream.max_late = int(buf.ints[LATE_TICKS]), float(buf.floats[MAX_LATE])
+        return n
 
     # --- the twin's fluid --------------------------------------------------------------------------------
     def _fluid_reset(self, traj, stream: Stream):
@@ -924,13 +981,6 @@ class SimNode(Node):
                 stream.fluid_epoch = self._fluid_epoch.value
             self._fluid[3].put({"kind": "reset", "tool_position": traj.initial_pose[:3].tolist(),
                                 "epoch": stream.fluid_epoch})
-
-    def _fluid_pose(self, fk: Robot, last: bool):
-        q = self._arm_positions()
-        if q is None or self._fluid is None:
-            return
-        self._fluid[3].put({"kind": "pose", "pose": se3_to_pose(fk.frame_placement(q)).tolist(), "last": last,
-                            "epoch": self._fluid_epoch.value, "stamp": time.time_ns()})
 
     def _fluid_quit(self):
         if self._fluid is None:
@@ -1051,8 +1101,9 @@ class SimNode(Node):
         """Ramp any motion to rest, end the workers."""
         stream = self.stream
         if stream is not None:
-            stream.stop_reason = stream.stop_reason or "node shutting down"
+            stream.request_stop("node shutting down")
             stream.done.wait(timeout)
+        self._stream_proc.close()
         with self._fluid_lock:
             self._fluid_quit()
         self._closing.set()
@@ -1060,8 +1111,8 @@ class SimNode(Node):
 
 
 def main(args=None):
-    # The stream thread must get the GIL back within a fraction of a control period when its deadline
-    # comes; CPython's default switch interval (5 ms) let executor threads hold it for up to 2.5 periods.
+    # The follower thread (and a take-over stop ramp) must get the GIL back within a fraction of a control
+    # period; CPython's default switch interval (5 ms) let executor threads hold it for up to 2.5 periods.
     sys.setswitchinterval(2e-4)
     from rclpy.utilities import remove_ros_args
 

@@ -90,6 +90,18 @@ class TwinArm:
             self.v[:] = 0.0
             self.a[:] = 0.0
 
+    def snapshot(self) -> dict:
+        """The whole state, to hand the arm to another process (the stream process and back)."""
+        with self._lock:
+            return {"q": self.q.copy(), "v": self.v.copy(), "a": self.a.copy(), "held": self.held.copy(),
+                    "tick_time": self.tick_time, "reflex": self.reflex}
+
+    def restore(self, snap: dict):
+        with self._lock:
+            self.q, self.v = np.array(snap["q"], dtype=float), np.array(snap["v"], dtype=float)
+            self.a, self.held = np.array(snap["a"], dtype=float), np.array(snap["held"], dtype=float)
+            self.tick_time, self.reflex = snap["tick_time"], snap["reflex"]
+
     def reset(self, q0, now: float | None = None):
         with self._lock:
             self.q = np.array(q0, dtype=float)
