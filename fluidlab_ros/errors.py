@@ -1,5 +1,5 @@
 """Refusals of the execution pipeline. Every refusal is a `PlanningError` whose message names the problem
-(which step, joint, value and limit); nothing of a refused trajectory may be sent to an arm."""
+(which step or time, joint or link, value and limit); nothing of a refused trajectory may be sent to an arm."""
 from __future__ import annotations
 
 
@@ -29,6 +29,12 @@ class LimitError(PlanningError):
     """The trajectory cannot be executed within the arm's limits (with the margin), even after time scaling."""
 
     kind = "limits"
+
+
+class CollisionError(PlanningError):
+    """An arm link would come closer than the clearance to the table, the task's container or another link."""
+
+    kind = "collision"
 
 
 class PathError(PlanningError):

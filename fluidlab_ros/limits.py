@@ -1,5 +1,6 @@
 """An arm's limits as data (robot_models/<robot>/limits.json): joint position, velocity, acceleration, jerk,
-the FR3's position-based velocity limits, and the Cartesian limits. Values are Franka's official ones,
+the FR3's position-based velocity limits, the Cartesian limits, and the joint torque and torque-rate limits
+(`effort`, N m, and `effort_rate`, N m/s: checked by fluidlab_ros/dynamics.py). Values are Franka's official ones,
 without margin; margins are applied by the planner and the verifier (see docs/execution.md)."""
 from __future__ import annotations
 
@@ -24,6 +25,8 @@ class JointLimits:
     position_based_velocity: dict | None  # FR3: gain, offset, q_upper, q_lower arrays
     cartesian: dict  # translation/rotation/elbow: velocity, acceleration, jerk
     check_period: float  # s, libfranka checks every command at this period
+    effort: np.ndarray | None = None  # N m, tau_max per joint
+    effort_rate: np.ndarray | None = None  # N m/s, dtau_max per joint
 
     @classmethod
     def load(cls, robot: str = "fr3", path: str | Path | None = None) -> "JointLimits":
@@ -36,10 +39,16 @@ class JointLimits:
         lim = cls(robot=doc["robot"], joint_names=tuple(doc["joint_names"]), lower=arr(doc["position"]["lower"]),
                   upper=arr(doc["position"]["upper"]), velocity=arr(doc["velocity"]),
                   acceleration=arr(doc["acceleration"]), jerk=arr(doc["jerk"]), position_based_velocity=pbv,
-                  cartesian=doc["cartesian"], check_period=float(doc.get("check_period", 1e-3)))
+                  cartesian=doc["cartesian"], check_period=float(doc.get("check_period", 1e-3)),
+                  effort=arr(doc["effort"]) if "effort" in doc else None,
+                  effort_rate=arr(doc["effort_rate"]) if "effort_rate" in doc else None)
         for name in ("lower", "upper", "velocity", "acceleration", "jerk"):
             if getattr(lim, name).shape != (len(lim.joint_names),):
                 raise ValueError(f"{path}: {name} must have one value per joint ({len(lim.joint_names)})")
+        for name in ("effort", "effort_rate"):
+            v = getattr(lim, name)
+            if v is not None and (v.shape != (len(lim.joint_names),) or np.any(v <= 0)):
+                raise ValueError(f"{path}: {name} must have one positive value per joint ({len(lim.joint_names)})")
         if np.any(lim.lower >= lim.upper) or np.any(lim.velocity <= 0) or np.any(lim.acceleration <= 0) \
                 or np.any(lim.jerk <= 0):
             raise ValueError(f"{path}: limits must have lower < upper and positive velocity, acceleration, jerk")

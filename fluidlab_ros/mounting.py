@@ -5,7 +5,9 @@ The tool offset is a fact about the task (the tool the simulation was built with
 class (`Task.flange_to_tool`, `Task.tool_name`), for the paper's tasks and for tasks of your own registered
 with `fluidlab_core.tasks.register`. Where the scene sits is the lab's calibration: robot_models/mounting.json
 gives each task's `scene_origin`; a task it does not list has its scene at the base frame's origin (the tasks'
-scenes are written in the base frame).
+scenes are written in the base frame). `table_height` is the height of the table plane in the scene frame (m;
+the file's top-level default, 0: the scenes stand on z = 0, as the arm's base does), used by the collision
+check (fluidlab_ros/collision.py); a task's entry may override it.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ class Mounting:
     scene_origin: np.ndarray  # (7,) scene frame in the base frame
     tool: str
     flange_to_tool: np.ndarray  # (7,) tool frame in the flange frame
+    table_height: float = 0.0  # m, the table plane's z in the scene frame
 
 
 def _pose(task: str, key: str, value) -> np.ndarray:
@@ -59,5 +62,9 @@ def load_mounting(task: str, path: str | Path | None = None) -> Mounting:
     if "flange_to_tool" in entry or "tool" in entry:
         raise ValueError(f"{path or robot_models.mounting_path()}: the tool of {task} is the task's "
                          f"(flange_to_tool, tool_name in its class), not the mounting file's")
+    table = float(entry.get("table_height", doc.get("table_height", 0.0)))
+    if not np.isfinite(table):
+        raise ValueError(f"mounting of {task}: table_height must be a finite number (m), got {table!r}")
     return Mounting(task=task, scene_origin=_pose(task, "scene_origin", entry.get("scene_origin", IDENTITY)),
-                    tool=cls.tool_name, flange_to_tool=_pose(task, "flange_to_tool", cls.flange_to_tool))
+                    tool=cls.tool_name, flange_to_tool=_pose(task, "flange_to_tool", cls.flange_to_tool),
+                    table_height=table)

@@ -4,9 +4,11 @@
       -> approach segment       a straight Cartesian line (quintic timing) from the start posture's tool pose
       -> IK (kinematics.py)     DLS differential IK with joint-limit and posture terms in the null space
       -> feasibility pass       uniform time scale + smooth start/stop ramps (timescale.py)
-      -> Ruckig (smoothing.py)  jerk-limited following at the control rate
+      -> Ruckig (smoothing.py)  jerk-limited following at the control rate (jerk also bounded by the torque rate)
       -> commands               v_k = (q_{k+1} - q_k) / T: integrating the held commands reproduces q_k exactly
-      -> verify (verify.py)     every 1 ms tick under the hold model, against limits x margin
+      -> verify (verify.py)     every 1 ms tick under the hold model, against limits x margin; joint torques and
+                                torque rates of the smooth profile (dynamics.py); clearance of the links from the
+                                table, the task's container and each other (collision.py)
       -> tool-path error        FK of the executed 1 ms positions against the planned, timed tool path
 
 Nothing is returned unless every stage passes; a refusal raises a PlanningError subclass whose message
@@ -23,7 +25,9 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 from fluidlab_core.trajectory import Trajectory
-from fluidlab_ros.errors import InvalidInputError, LimitError, PathError
+from fluidlab_ros.collision import CollisionModel
+from fluidlab_ros.dynamics import DynamicModel, Payload, torque_rate_jerk
+from fluidlab_ros.errors import CollisionError, InvalidInputError, LimitError, PathError
 from fluidlab_ros.frames import interpolate_poses, pose_to_se3, rotation_angle, se3_to_pose
 from fluidlab_ros.kinematics import DifferentialIK, IKOptions
 from fluidlab_ros.mounting import Mounting, load_mounting
@@ -64,7 +68,17 @@ class PlanReport:
     approach_path_error: float = 0.0  # m
     lagging_ticks: int = 0  # control ticks where smoothing could not follow the reference exactly
     planning_time: float = 0.0  # s of wall time for plan()
-    stage_times: dict = field(default_factory=dict)  # s per stage: ik, time_scaling, smoothing, verify, path_error
+    stage_times: dict = field(default_factory=dict)  # s per stage: ik, time_scaling, smoothing, verify (of which
+    # torque and collision), path_error
+    payload_mass: float = 0.0  # kg, the point mass at the tool frame in the torque model
+    jerk_budget: list = field(default_factory=list)  # rad/s^3 per joint the smoothing used (torque rate included)
+    smoothing_passes: int = 1  # 2 or 3: the kinematic jerk budget let the torques change too fast
+    peak_torque: list = field(default_factory=list)  # N m per joint, max |tau| (fractions: peak["torque"])
+    peak_torque_rate: list = field(default_factory=list)  # N m/s per joint (fractions: peak["torque_rate"])
+    clearance: float = 0.0  # m, required between the links and the table, the container and each other
+    min_clearance: dict = field(default_factory=dict)  # "table", the container's name, "self" -> least distance, m
+    min_clearance_at: dict = field(default_factory=dict)  # same keys -> "<link> at t = ... s"
+    collision_sample_spacing: float = 0.0  # m, largest motion of a link capsule between two checked samples
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -156,7 +170,8 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
          control_rate: float = 500.0, margin: float = 0.8, position_margin: float = 0.03, q_start=None,
          tolerate_lost_command: bool = True, max_time_scale: float = 10.0, accel_window: float = 0.05,
          max_path_error: float = 0.002, max_orientation_error: float = 0.02, approach_speed: float = 0.25,
-         approach_angular_speed: float = 0.5, ik_options: IKOptions = IKOptions()) -> Plan:
+         approach_angular_speed: float = 0.5, ik_options: IKOptions = IKOptions(), payload: Payload | None = None,
+         clearance: float | None = None) -> Plan:
     """Plan the execution of `trajectory` on the arm; see the module docstring.
 
     robot: "fr3" (default) or "panda", or a Robot whose tool frame is already mounted.
@@ -169,7 +184,9 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
     (the arm then sees two commands' change in one 1 ms tick); this halves the acceleration budget.
     max_time_scale: refuse
     trajectories that would need a larger slow-down. max_path_error / max_orientation_error: refuse when the
-    executed tool path leaves the planned one by more (m / rad).
+    executed tool path leaves the planned one by more (m / rad). payload: the load at the tool frame in the torque
+    model (default robot_models/<robot>/inertials.json's: 0.5 kg at the tool frame's origin). clearance: m the
+    arm's links must keep from the table, the task's container and each other (default collision.json's, 10 mm).
     """
     t_begin = time.perf_counter()
     if not 0 < margin <= 1:
@@ -205,6 +222,11 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                                 f"{position_margin} rad")
 
     a_plan, j_plan = command_budgets(lim, control_rate, margin, tolerate_lost_command)
+    try:
+        dynamics = DynamicModel(robot, payload)
+        collision = CollisionModel(robot, mounting, clearance)
+    except ValueError as err:
+        raise InvalidInputError(str(err)) from None
 
     def v_plan(q):
         lo, hi = lim.velocity_bounds(q)
@@ -236,54 +258,97 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         _check_positions(app.q, lim, position_margin, "approach")
         q_now = app.q[-1]
         res_p, res_r = max(res_p, app.residual_position.max()), max(res_r, app.residual_rotation.max())
-        tmap, sr = choose_time_map(app.q, app_dt, v_plan, TIME_MAP_SHARE * a_plan, j_plan, accel_window,
-                                   max_time_scale)
-        if not np.isfinite(sr.scale) or sr.scale > max_time_scale:
-            raise LimitError(f"the approach to the first pose needs a {sr.scale:.3g}x slow-down ({sr.binding})")
-        segments.append(_Segment("approach", app_poses, app_dt, app.q, tmap))
-        lap("time_scaling")
     task = ik.track(task_poses, q_now, trajectory.dt, q_posture=q_now, what="trajectory")
     res_p, res_r = max(res_p, task.residual_position.max()), max(res_r, task.residual_rotation.max())
     lap("ik")
     _check_positions(task.q, lim, position_margin)
-    tmap, sr = choose_time_map(task.q, trajectory.dt, v_plan, TIME_MAP_SHARE * a_plan, j_plan, accel_window,
-                               max_time_scale)
-    if not np.isfinite(sr.scale) or sr.scale > max_time_scale:
-        raise LimitError(f"the trajectory is too fast for the {robot.name}: it needs a {sr.scale:.3g}x slow-down "
-                         f"({sr.binding}; peak joint speed {sr.velocity_ratio:.3g}x and windowed acceleration "
-                         f"{sr.acceleration_ratio:.3g}x the planning limits), more than max_time_scale = "
-                         f"{max_time_scale}", scale=sr.scale)
-    segments.append(_Segment("task", task_poses, trajectory.dt, task.q, tmap))
-    lap("time_scaling")
+    path_q = np.vstack([app.q, task.q]) if needs_approach else task.q
 
-    # reference at the control ticks, then jerk-limited smoothing
-    starts = np.cumsum([0.0] + [s.tmap.duration for s in segments])
-    total = starts[-1]
+    def timed_segments(jerk):
+        segs = []
+        if needs_approach:
+            tm, sc = choose_time_map(app.q, app_dt, v_plan, TIME_MAP_SHARE * a_plan, jerk, accel_window,
+                                     max_time_scale)
+            if not np.isfinite(sc.scale) or sc.scale > max_time_scale:
+                raise LimitError(f"the approach to the first pose needs a {sc.scale:.3g}x slow-down ({sc.binding})")
+            segs.append(_Segment("approach", app_poses, app_dt, app.q, tm))
+        tm, sc = choose_time_map(task.q, trajectory.dt, v_plan, TIME_MAP_SHARE * a_plan, jerk, accel_window,
+                                 max_time_scale)
+        if not np.isfinite(sc.scale) or sc.scale > max_time_scale:
+            raise LimitError(f"the trajectory is too fast for the {robot.name}: it needs a {sc.scale:.3g}x slow-down "
+                             f"({sc.binding}; peak joint speed {sc.velocity_ratio:.3g}x and windowed acceleration "
+                             f"{sc.acceleration_ratio:.3g}x the planning limits), more than max_time_scale = "
+                             f"{max_time_scale}", scale=sc.scale)
+        segs.append(_Segment("task", task_poses, trajectory.dt, task.q, tm))
+        return segs, tm, sc
 
-    def reference(t: float):
-        k = min(int(np.searchsorted(starts[1:-1], t, side="right")), len(segments) - 1)
-        p, v, a = segments[k].reference(np.array([t - starts[k]]))
-        return p[0], v[0], a[0]
+    def smoothed(segs, jerk):
+        """Reference at the control ticks, then jerk-limited smoothing."""
+        starts = np.cumsum([0.0] + [sg.tmap.duration for sg in segs])
+        total = starts[-1]
 
-    ticks = np.minimum(np.arange(1, int(np.ceil(total / period - 1e-9)) + 1) * period, total)
-    seg_of_tick = np.minimum(np.searchsorted(starts[1:-1], ticks, side="right"), len(segments) - 1)
-    at_ticks = [np.empty((len(ticks), robot.dof)) for _ in range(3)]
-    for k, (seg, t0) in enumerate(zip(segments, starts[:-1])):
-        m = seg_of_tick == k
-        for dst, val in zip(at_ticks, seg.reference(ticks[m] - t0)):
-            dst[m] = val
-    follower = JerkLimitedFollower(robot.dof, period, a_plan, j_plan, v_plan)
-    sm = follower.run(q_start, reference, total, at_ticks)
+        def reference(t: float):
+            k = min(int(np.searchsorted(starts[1:-1], t, side="right")), len(segs) - 1)
+            p, v, a = segs[k].reference(np.array([t - starts[k]]))
+            return p[0], v[0], a[0]
+
+        ticks = np.minimum(np.arange(1, int(np.ceil(total / period - 1e-9)) + 1) * period, total)
+        seg_of_tick = np.minimum(np.searchsorted(starts[1:-1], ticks, side="right"), len(segs) - 1)
+        at_ticks = [np.empty((len(ticks), robot.dof)) for _ in range(3)]
+        for k, (seg, t0) in enumerate(zip(segs, starts[:-1])):
+            m = seg_of_tick == k
+            for dst, val in zip(at_ticks, seg.reference(ticks[m] - t0)):
+                dst[m] = val
+        follower = JerkLimitedFollower(robot.dof, period, a_plan, jerk, v_plan)
+        return starts, follower.run(q_start, reference, total, at_ticks)
+
+    # Time scaling and smoothing at the kinematic jerk budget; if the joint torques then change faster than
+    # PLAN_FRACTION x margin x dtau_max (dynamics.py, (2)), again with each joint's jerk bounded by the torque
+    # rate (torque_rate_jerk), and, should that not suffice, once more with the jerk scaled down by the excess.
+    rate_budget = PLAN_FRACTION * margin
+    smoothing_passes, rate_first = 0, 0.0
+    for smoothing_passes in range(1, 4):
+        segments, tmap, sr = timed_segments(j_plan)
+        lap("time_scaling")
+        try:
+            starts, sm = smoothed(segments, j_plan)
+        except LimitError as err:
+            if smoothing_passes == 1:
+                raise
+            raise LimitError(f"the joint torques would change faster than {rate_budget:.2g} x their rate limit "
+                             f"({rate_first:.3g} x at the kinematic jerk budget), and the smoothing at the jerk that "
+                             f"keeps them within it ({np.round(j_plan, 0).tolist()} rad/s^3) fails: {err}",
+                             **err.details) from None
+        lap("smoothing")
+        tau_s = dynamics.torques(sm.position, sm.velocity, sm.acceleration)
+        rate_frac = float(np.max(np.abs(np.diff(tau_s, axis=0)) / period / dynamics.effort_rate, initial=0.0))
+        if smoothing_passes == 1:
+            rate_first = rate_frac
+        if rate_frac <= rate_budget or smoothing_passes == 3:
+            break
+        if smoothing_passes == 1:
+            j_plan = torque_rate_jerk(dynamics, path_q, j_plan, margin, PLAN_FRACTION)
+        else:
+            j_plan = j_plan * (0.95 * rate_budget / rate_frac)
+        lap("smoothing")
     commands = np.vstack([np.diff(sm.position, axis=0) / period, np.zeros((1, robot.dof))])
     positions = np.vstack([sm.position, sm.position[-1:]])
     lap("smoothing")
 
-    ver = verify(commands, q_start, control_rate, lim, margin, position_margin, tolerate_lost_command, robot)
+    ver = verify(commands, q_start, control_rate, lim, margin, position_margin, tolerate_lost_command, robot,
+                 dynamics=dynamics, collision=collision, smooth=(sm.position, sm.velocity, sm.acceleration))
+    lap("verify")
+    stages.update(ver.check_times)
     if not ver.ok:
-        raise LimitError("the command stream would violate the arm's limits: " + "; ".join(ver.violations),
+        if len(ver.collision_violations) == len(ver.violations):
+            raise CollisionError("the motion would bring the arm too close to an obstacle: "
+                                 + "; ".join(ver.violations), violations=ver.violations)
+        note = "" if smoothing_passes == 1 else (
+            f" (smoothed with the joint jerk reduced to {np.round(j_plan, 0).tolist()} rad/s^3: at the kinematic "
+            f"jerk budget the joint torques changed {rate_first:.3g} x their rate limit)")
+        raise LimitError("the command stream would violate the arm's limits: " + "; ".join(ver.violations) + note,
                          violations=ver.violations)
 
-    lap("verify")
     # tool-path error: executed (FK of the 1 ms hold-model positions) against the planned, timed tool path
     tau = lim.check_period
     t_ms = np.arange(len(ver.positions)) * tau
@@ -318,7 +383,11 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         peak=peak, peak_per_joint={k: np.atleast_1d(v).tolist() for k, v in ver.peak.items()},
         tool_path_error=float(e_p.max()), tool_path_error_rms=float(np.sqrt(np.mean(e_p ** 2))),
         tool_orientation_error=float(e_r.max()), approach_path_error=app_err, lagging_ticks=len(sm.lagging_ticks),
-        planning_time=time.perf_counter() - t_begin, stage_times=stages)
+        planning_time=time.perf_counter() - t_begin, stage_times=stages, payload_mass=float(dynamics.payload.mass),
+        jerk_budget=j_plan.tolist(), smoothing_passes=smoothing_passes, peak_torque=ver.torque.peak_torque.tolist(),
+        peak_torque_rate=ver.torque.peak_torque_rate.tolist(), clearance=collision.clearance,
+        min_clearance=dict(ver.collision.minimum), min_clearance_at=dict(ver.collision.where),
+        collision_sample_spacing=ver.collision.sample_spacing)
     return Plan(robot=robot.name, joint_names=robot.joint_names, control_rate=control_rate, q_start=q_start,
                 times=np.arange(len(commands)) * period, velocities=commands, positions=positions,
                 task_start_time=float(starts[-2]), task_end_time=float(starts[-1]), task_time_map=tmap,

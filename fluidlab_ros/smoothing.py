@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Trajectory
+from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from fluidlab_ros.errors import LimitError
 
@@ -74,7 +74,11 @@ class JerkLimitedFollower:
                 inp.target_position = list(p_ref)
                 inp.target_velocity = list(np.clip(v_ref, lo, hi))
                 inp.target_acceleration = list(np.clip(a_ref, -self.acc, self.acc))
-                res = otg.calculate(inp, traj)
+                try:
+                    res = otg.calculate(inp, traj)
+                except RuckigError as err:  # e.g. a velocity bound it can no longer keep at this jerk
+                    raise LimitError(f"jerk-limited smoothing failed at tick {k} (t = {k * T:.3f} s): "
+                                     f"{str(err).strip()}", tick=k) from None
                 if res not in (Result.Working, Result.Finished):
                     raise LimitError(f"jerk-limited smoothing failed at tick {k} (t = {k * T:.3f} s): Ruckig "
                                      f"returned {res.name}", tick=k)

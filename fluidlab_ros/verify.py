@@ -16,9 +16,17 @@ fraction of the official limit, and the jerk and acceleration that one lost comm
 (the arm then jumps two commands' change in one tick; a command that is only 1 ms late is harmless). Cartesian flange speeds are checked against the
 Cartesian velocity limits; Cartesian accelerations and jerks are reported only (libfranka's joint velocity
 interface checks joint-space limits).
+
+Given a `dynamics` model (fluidlab_ros/dynamics.py) the joint torques tau = M(q) qdd + C(q, qd) qd + g(q) and
+their rate along the stream must also stay within margin x Franka's tau_max and dtau_max; given a `collision`
+model (fluidlab_ros/collision.py) the arm's links must keep the clearance from the table, the task's container
+and each other at every command tick (refined to 2 mm of motion). The torques are those of the smooth profile
+(`smooth`: q, qd, qdd at the command ticks, from the jerk-limited stage), or, without it, of central
+differences of the integrated positions at the command ticks. pipeline.plan always passes both models.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +43,11 @@ class Verification:
     positions: np.ndarray | None = None  # (J + 1, dof) arm positions every 1 ms under the hold model
     flange_positions: np.ndarray | None = None  # (J + 1, 3)
     flange_rotations: np.ndarray | None = None  # (J + 1, 3, 3)
+    torque_violations: list[str] = field(default_factory=list)  # also in `violations`
+    collision_violations: list[str] = field(default_factory=list)  # also in `violations`
+    torque: object = None  # dynamics.TorqueCheck, if a dynamics model was given
+    collision: object = None  # collision.CollisionCheck, if a collision model was given
+    check_times: dict = field(default_factory=dict)  # s of wall time: torque, collision
 
     def summary(self) -> dict:
         return {k: float(np.max(v)) for k, v in self.peak.items()}
@@ -59,9 +72,13 @@ def _first(mask: np.ndarray):
 
 
 def verify(commands: np.ndarray, q0, rate: float, limits: JointLimits, margin: float = 0.8,
-           position_margin: float = 0.03, tolerate_lost_command: bool = False, robot=None) -> Verification:
+           position_margin: float = 0.03, tolerate_lost_command: bool = False, robot=None, dynamics=None,
+           collision=None, smooth=None) -> Verification:
     """Check commands (K, dof) in rad/s, streamed at `rate` Hz from rest at q0. `robot` (fluidlab_ros.robot.Robot)
-    enables the Cartesian checks."""
+    enables the Cartesian checks, `dynamics` (dynamics.DynamicModel) the torque and torque-rate checks, `collision`
+    (collision.CollisionModel) the clearance checks. `smooth`: (q, qd, qdd), each (N, dof), the smooth
+    profile at the command ticks t_k = k / rate, k = 0..N-1, whose torques are checked (default: central
+    differences of the integrated positions at the command ticks)."""
     tau = limits.check_period
     commands = np.asarray(commands, dtype=float)
     violations: list[str] = []
@@ -127,6 +144,28 @@ def verify(commands: np.ndarray, q0, rate: float, limits: JointLimits, margin: f
     res = Verification(not violations, violations, peak, q)
     if robot is not None:
         _cartesian(res, robot, limits, margin, tau)
+    n_hold = ticks_per_command(rate, tau)
+    if dynamics is not None:
+        from fluidlab_ros.dynamics import check_torques, smooth_derivatives
+
+        start = time.perf_counter()
+        if smooth is None:
+            smooth = smooth_derivatives(q[::n_hold], 1.0 / rate)
+        tc = check_torques(dynamics, *smooth, 1.0 / rate, margin)
+        res.torque = tc
+        res.peak.update(tc.peak)
+        res.torque_violations = list(tc.violations)
+        res.check_times["torque"] = time.perf_counter() - start
+    if collision is not None:
+        start = time.perf_counter()
+        q_ticks = q[::n_hold]
+        cc = collision.check(q_ticks, np.arange(len(q_ticks)) / rate)
+        res.collision = cc
+        res.collision_violations = list(cc.violations)
+        res.check_times["collision"] = time.perf_counter() - start
+    if res.torque_violations or res.collision_violations:
+        res.violations.extend(res.torque_violations + res.collision_violations)
+        res.ok = False
     return res
 
 

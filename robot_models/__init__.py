@@ -1,5 +1,7 @@
 """Robot descriptions shipped with the package: `<robot>/<robot>.urdf` (kinematics), `<robot>/limits.json`
-(joint and Cartesian limits) and `mounting.json` (each task's scene pose and tool offset).
+(joint, torque and Cartesian limits), `<robot>/inertials.json` (link masses, centres of mass, inertias and the
+default payload), `collision.json` (the links' capsules and self-collision pairs, both arms) and
+`mounting.json` (each task's scene pose and table height).
 
 `robot_models` is a package directory so that the data files install with `pip install .` (package_data)
 and are found from the installed package with the functions below; nothing reads them by a path relative to
@@ -26,6 +28,14 @@ def urdf_path(robot: str = "fr3") -> Path:
 
 def limits_path(robot: str = "fr3") -> Path:
     return ROOT / _check(robot) / "limits.json"
+
+
+def inertials_path(robot: str = "fr3") -> Path:
+    return ROOT / _check(robot) / "inertials.json"
+
+
+def collision_path() -> Path:
+    return ROOT / "collision.json"
 
 
 def mounting_path() -> Path:

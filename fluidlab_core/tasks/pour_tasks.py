@@ -149,7 +149,9 @@ ICE_REACH = (0.012, 0.012, 0.015)  # half extents of the box the moving part's o
 # turned by π about x, 0.15 m along its z axis (Static); the cone upright, its tip 0.10 m below the flange
 # and 0.06 m beside it (Dynamic)
 FLANGE_TO_NOZZLE = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0, 1.0)
-FLANGE_TO_CONE = (0.06, 0.0, 0.10, 1.0, 0.0, 0.0, 0.0)  # from the side: clear of the nozzle above
+# from the side, 100 mm off the cone's axis: at 60 mm the arm's wrist (fr3_link7) passed 1.9 mm from the nozzle above
+# (the collision check, fluidlab_ros/collision.py, wants 10 mm); at 100 mm it keeps 32 mm
+FLANGE_TO_CONE = (0.10, 0.0, 0.12, 1.0, 0.0, 0.0, 0.0)
 # soft serve: the paper's ice cream density (0.5); moduli set for a 4 m/s wave speed like every task material
 # (λ + 2μ = ρ c²), and a yield stress of 200 Pa, which a pile reaches at about 4 cm (ρ g h ≈ 200 Pa): the cone's
 # spiral holds, and the nozzle's stream flows
