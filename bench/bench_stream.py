@@ -3,8 +3,9 @@
 Starts sim_node (twin mode) and command_monitor as separate processes through their console scripts, on an
 isolated graph (a private ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), sends one ~/execute goal
 for the 10 s stirring trajectory of bench_planning.py and reports what the monitor saw: commands received
-against sent, the rate from the arrival span, inter-arrival p50 / p99 / p99.9 / max, and what the node
-reported (late ticks, the largest lateness against its timeline, the twin's tracking error). Loads:
+against sent, the rate from the arrival span, inter-arrival p50 / p99 / p99.9 / max, the gaps between the
+stream process's own send stamps (from the execution's recording), and what the node reported (late ticks, the
+largest lateness against its timeline, the twin's tracking error). Loads:
 
   quiet    the stream alone (fluid twin off)
   fluid    the fluid twin (a Taichi process stepping the Mixing fluid with the tool) beside the stream
@@ -12,8 +13,8 @@ reported (late ticks, the largest lateness against its timeline, the twin's trac
            processes that each burn a core, all started before the stream
 
 at 500 Hz and at 1 kHz. The goal for (loaded, 500 Hz): p99.9 <= 3 ms and max <= 10 ms. The inter-arrival
-figures include the monitor's own delays (it is a Python process under the same load), so they bound the
-stream's jitter from above.
+figures include the monitor's own delays (a Python process under the same load; it asks for SCHED_FIFO so that
+they stay small where that is allowed), so they bound the stream's jitter from above.
 
     python bench/bench_stream.py [--rates 500 1000] [--loads quiet fluid loaded] [--out bench/results/stream_cpu.txt]
 """
@@ -35,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 from bench.bench_planning import stirring  # noqa: E402
 
 BURN = "import time\nwhile True:\n    pass\n"
+MONITOR_PRIORITY = 20  # the monitor at real-time priority where allowed: it measures the stream, not itself
 
 
 def run_once(tmp: Path, load: str, rate: float, env: dict) -> dict:
@@ -55,7 +57,8 @@ def run_once(tmp: Path, load: str, rate: float, env: dict) -> dict:
                             env=env, stdout=log, stderr=subprocess.STDOUT)
     ready, out = tmp / f"mon_{tag}.ready", tmp / f"mon_{tag}.npz"
     mon = subprocess.Popen([str(bindir / "command_monitor"), "--topic", "/sim_node/commands", "--out", str(out),
-                            "--ready-file", str(ready), "--rate", str(rate)], env=env, stdout=subprocess.PIPE, text=True)
+                            "--ready-file", str(ready), "--rate", str(rate), "--realtime-priority", str(MONITOR_PRIORITY)],
+                           env=env, stdout=subprocess.PIPE, text=True)
     burners = []
     cl = None
     try:
@@ -85,7 +88,7 @@ def run_once(tmp: Path, load: str, rate: float, env: dict) -> dict:
         res_fut = fut.result().get_result_async()
         rclpy.spin_until_future_complete(cl, res_fut, timeout_sec=600)
         res = res_fut.result()
-        assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.message
+        failed = "" if res.status == GoalStatus.STATUS_SUCCEEDED else res.result.message  # a row all the same
         if load == "loaded":
             c = opt_handle.cancel_goal_async()
             rclpy.spin_until_future_complete(cl, c, timeout_sec=10)
@@ -116,7 +119,17 @@ def run_once(tmp: Path, load: str, rate: float, env: dict) -> dict:
     m = re.search(r"(\d+) late ticks \(max ([0-9.e+-]+) ms\)", msg)
     stats["late_ticks"], stats["node_max_late_ms"] = (int(m.group(1)), float(m.group(2))) if m else (-1, float("nan"))
     stats["tracking_mm"] = res.result.max_tracking_error * 1e3
+    # the sender's own view: the stamps the stream process wrote as each command went out (the recording)
+    from fluidlab_ros.recording import read_recording
+    if res.result.recording_path:
+        sent_t = read_recording(res.result.recording_path).commands[0]
+        gaps = np.diff(sent_t) * 1e3
+        stats.update(send_p999_ms=float(np.percentile(gaps, 99.9)), send_max_ms=float(gaps.max()))
+    else:  # refused before anything was sent
+        stats.update(send_p999_ms=float("nan"), send_max_ms=float("nan"))
+        print(f"the execution was refused: {msg}", file=sys.stderr)
     stats["result"] = msg
+    stats["failed"] = failed
     return stats
 
 
@@ -146,13 +159,18 @@ def main():
              f"({datetime.date.today()}, {platform.node()}, {os.cpu_count()} cores, {platform.processor() or platform.machine()})",
              "# trajectory: 10 s stirring (bench_planning.py) from the ready posture, twin mode; inter-arrival in ms;",
              "# late/max late: the node's own count of ticks later than half a period and the largest lateness;",
-             "# loaded = fluid twin + an optimise goal + two processes burning a core each",
+             "# loaded = fluid twin + an optimise goal + two processes burning a core each; the monitor runs at SCHED_FIFO",
+             f"# {MONITOR_PRIORITY} where allowed; sent p99.9/max: gaps between the stream process's own send stamps (the recording)",
              f"{'rate':>5} {'load':<7} {'sent':>6} {'recv':>6} {'rate Hz':>8} {'p50':>6} {'p99':>6} {'p99.9':>6} "
-             f"{'max':>6} {'late':>5} {'max late':>8} {'track mm':>8} {'peak j':>6}"]
+             f"{'max':>6} {'late':>5} {'max late':>8} {'track mm':>8} {'peak j':>6} {'sent p99.9':>10} {'sent max':>8}"]
     for rate, load, s in rows:
         lines.append(f"{rate:>5.0f} {load:<7} {s['sent']:>6} {s['count']:>6} {s['rate']:>8.2f} {s['gap_p50_ms']:>6.2f} "
                      f"{s['gap_p99_ms']:>6.2f} {s['gap_p999_ms']:>6.2f} {s['gap_max_ms']:>6.2f} {s['late_ticks']:>5} "
-                     f"{s['node_max_late_ms']:>8.2f} {s['tracking_mm']:>8.2f} {s['peak_fraction']['jerk']:>6.2f}")
+                     f"{s['node_max_late_ms']:>8.2f} {s['tracking_mm']:>8.2f} {s['peak_fraction']['jerk']:>6.2f} "
+                     f"{s['send_p999_ms']:>10.2f} {s['send_max_ms']:>8.2f}")
+    for rate, load, s in rows:
+        if s["failed"]:
+            lines.append(f"# {rate:.0f} Hz {load}: the stream STOPPED: {s['failed']}")
     text = "\n".join(lines) + "\n"
     print(text)
     Path(args.out).write_text(text)

@@ -42,6 +42,11 @@ class Loaded:
     trajectory: Trajectory
 
 
+# A paper-size trajectory (hundreds of steps of 6 twists, with metadata) is under 1 MB; a file far larger is not a
+# trajectory this project wrote, and parsing it would hold the node for as long as it takes.
+MAX_FILE_BYTES = 32_000_000
+
+
 class TrajectoryStore:
     def __init__(self, folder: str | Path):
         self.folder = Path(folder).expanduser().resolve()
@@ -66,10 +71,19 @@ class TrajectoryStore:
 
     def read(self, name: str) -> "Loaded":
         """The file of trajectory `name`: its path, its bytes and the Trajectory they hold, from one read (so
-        that what is planned, hashed and recorded is the same document)."""
+        that what is planned, hashed and recorded is the same document). Refuses a file that is a link (or in a
+        linked folder) leading out of the folder, and one larger than MAX_FILE_BYTES."""
         path = self.find(name)
+        real = path.resolve()
+        if not real.is_relative_to(self.folder):
+            raise StoreError(f"trajectory {name!r} cannot be used: {path} leads out of the trajectory folder "
+                             f"{self.folder} (to {real}); copy the file into the folder instead of linking it")
         try:
-            data = path.read_bytes()
+            size = real.stat().st_size
+            if size > MAX_FILE_BYTES:
+                raise StoreError(f"trajectory {name!r} cannot be used: {path} has {size / 1e6:.1f} MB, more than "
+                                 f"the {MAX_FILE_BYTES / 1e6:g} MB a trajectory file may have")
+            data = real.read_bytes()
             return Loaded(path, data, Trajectory.loads(data, str(path)))
         except (TrajectoryError, OSError) as err:
             raise StoreError(f"trajectory {name!r} cannot be used: {err}") from None

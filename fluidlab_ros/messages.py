@@ -1,11 +1,20 @@
-"""ROS messages built from numpy arrays: poses, point clouds (with per-point colour), sphere-list markers."""
+"""ROS messages built from numpy arrays: velocity commands, poses, point clouds (with per-point colour),
+sphere-list markers."""
 from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import ColorRGBA
+from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker
+
+
+def velocity_command(command: np.ndarray, order: np.ndarray) -> Float64MultiArray:
+    """A JointGroupVelocityController command: joint velocities (rad/s) in the controller's joint order."""
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
+    msg.data = np.asarray(command, dtype=float)[order].tolist()
+    return msg
 
 
 def pose_msg(pose, frame_id: str, stamp_ns: int) -> PoseStamped:

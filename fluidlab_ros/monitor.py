@@ -65,7 +65,18 @@ def main(argv=None):
     ap.add_argument("--rate", type=float, default=500.0, help="nominal stream rate (Hz) for the hold model")
     ap.add_argument("--robot", default="fr3")
     ap.add_argument("--ready-file", default=None, help="touch this file once subscribed (for scripts)")
+    ap.add_argument("--realtime-priority", type=int, default=0,
+                    help="SCHED_FIFO priority for this process (0: normal), so that what it measures is the stream's "
+                         "timing and not its own scheduling; needs rtprio / CAP_SYS_NICE")
     args = ap.parse_args(argv)
+    if args.realtime_priority > 0:
+        import os
+        import sys
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
+        except (OSError, AttributeError) as err:
+            print(f"command_monitor: SCHED_FIFO {args.realtime_priority} refused ({err}); normal scheduling",
+                  file=sys.stderr)
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions

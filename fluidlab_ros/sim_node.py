@@ -60,7 +60,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import JointState, PointCloud2
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from std_msgs.msg import Float64, Float64MultiArray, String
 from visualization_msgs.msg import MarkerArray
 from std_srvs.srv import SetBool, Trigger
 
@@ -70,7 +70,7 @@ from fluidlab_msgs.srv import GetTrajectory, ListTrajectories
 
 from fluidlab_ros.errors import PlanningError
 from fluidlab_ros.frames import se3_to_pose
-from fluidlab_ros.messages import marker, point_cloud, pose_msg
+from fluidlab_ros.messages import marker, point_cloud, pose_msg, velocity_command
 from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.robot import READY_Q, Robot
@@ -155,6 +155,7 @@ class Stream:
     fluid_final: threading.Event = field(default_factory=threading.Event)  # the fluid's final state arrived
     fluid_clouds: int = 0  # particle clouds recorded
     fluid_pending: list = field(default_factory=list)  # clouds that came before the recording's metadata
+    mirror: tuple = (-1, None)  # (k, twin q as plan command k went out) of the last plan row the follower read
 
     def request_stop(self, reason: str):
         """Ask the stream for a ramp to rest (the first reason is kept)."""
@@ -516,8 +517,15 @@ class SimNode(Node):
                 path = self.recording_folder / path
             if not g.recording_path or not path.is_dir():
                 raise ValueError(f"no recording folder at {path}")
+            # a client may read and write only under the recording folder (a goal is not a shell)
+            if not path.resolve().is_relative_to(self.recording_folder):
+                raise ValueError(f"recording {path} is outside the recording folder {self.recording_folder}")
             parse_disturbance(g.disturbance)  # refuses unknown keys before any work
             out_dir = Path(g.out_dir).expanduser() if g.out_dir else path / "replay"
+            if not out_dir.is_absolute():
+                out_dir = path / out_dir
+            if not out_dir.resolve().is_relative_to(self.recording_folder):
+                raise ValueError(f"out_dir {out_dir} is outside the recording folder {self.recording_folder}")
         except ValueError as err:
             self.replaying = False
             result.message = str(err)
@@ -679,8 +687,12 @@ class SimNode(Node):
             fluid = self._fluid
             if stream.fluid_epoch >= 0 and fluid is not None and not fluid[2].is_alive():
                 stream.request_stop(f"the fluid twin's worker process died (exit code {fluid[2].exitcode})")
-            k = min(stream.index, len(pl.positions) - 1)
-            q = self._arm_positions()
+            if stream.to_robot:  # the measured arm now, against the plan's command now
+                k, q = min(stream.index, len(pl.positions) - 1), self._arm_positions()
+            else:  # the twin after the last row the follower read, against that row's command: the follower may
+                # be behind the stream (a loaded node), and a mirror from then against the plan of now would
+                # count the lag as error (67 mm once, at 1 kHz under load)
+                k, q = stream.mirror  # (the twin when command k went out: planned at positions[k])
             err = 0.0
             if q is not None:
                 plan_tool = fk.frame_placement(pl.positions[k]).translation
@@ -781,11 +793,7 @@ class SimNode(Node):
         with every STATE_EVERY-th the arm states and tool poses."""
         rec, buf = stream.recorder, stream.buf
         stamp = int(buf.stamp[i])
-        command = buf.command[i]
-        msg = Float64MultiArray()
-        msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
-        msg.data = command[self.controller_order].tolist()
-        rec.put("/sim_node/commands", msg, stamp)
+        rec.put("/sim_node/commands", velocity_command(buf.command[i], self.controller_order), stamp)
         stream.recorded += 1
         if (stream.recorded - 1) % STATE_EVERY:
             return  # states and poses at control_rate / STATE_EVERY
@@ -809,9 +817,7 @@ class SimNode(Node):
     def _send(self, stream: Stream, command: np.ndarray, now: float) -> str:
         """Publish one command from this process (the take-over ramp after the stream process failed), give it
         to the twin and write its row; returns a reason to stop, or ''."""
-        msg = Float64MultiArray()
-        msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
-        msg.data = command[self.controller_order].tolist()
+        msg = velocity_command(command, self.controller_order)
         self.pub_commands.publish(msg)
         if stream.to_robot and self.pub_controller is not None:
             self.pub_controller.publish(msg)
@@ -953,6 +959,10 @@ class SimNode(Node):
                                         "stamp": int(buf.stamp[i])})
         if not buf.ints[DONE]:
             self.twin.restore(row_state(buf, n - 1))
+        plan_rows = np.nonzero(buf.k[seen:n] >= 0)[0]
+        if len(plan_rows):
+            i = seen + int(plan_rows[-1])
+            stream.mirror = (int(buf.k[i]), buf.q[i].copy())
         stream.index = int(buf.ints[INDEX])
         stream.phase = buf.phase
         stream.late_ticks, stream.max_late = int(buf.ints[LATE_TICKS]), float(buf.floats[MAX_LATE])

@@ -147,6 +147,10 @@ def stream_process(config: dict, jobs, results):
     """Entry point of the stream process (multiprocessing, spawn). config: robot_model, mode, node_name,
     commands_topic, controller_topic (or ''), joint_state_topic, joint_state_qos, realtime_priority."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the node ramps
+    # Fast DDS over UDP only for this process, unless the user chose its transports: its shared-memory transport
+    # writes into each reader's port under a lock, and a stream process stopped (SIGSTOP, a stall) while it held
+    # one delayed the node's take-over ramp to the same reader by 2 s (tests/ros/test_stream_faults.py)
+    os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     rt = _realtime(int(config["realtime_priority"]))
     import multiprocessing as mp
     import queue
@@ -156,9 +160,16 @@ def stream_process(config: dict, jobs, results):
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
-    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+    from std_msgs.msg import Float64MultiArray
+
+    from fluidlab_ros.messages import velocity_command
 
     from fluidlab_ros.limits import JointLimits
+    # what run() uses, imported now: a first plan must not wait for imports (hundreds of ms) past its deadline
+    import fluidlab_ros.pipeline  # noqa: F401
+    import fluidlab_ros.schedule  # noqa: F401
+    import fluidlab_ros.stopping  # noqa: F401
+    import fluidlab_ros.twin  # noqa: F401
 
     limits = JointLimits.load(config["robot_model"])
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
@@ -189,9 +200,7 @@ def stream_process(config: dict, jobs, results):
         spin.start()
 
     def publish(command: np.ndarray, order: np.ndarray, to_robot: bool):
-        msg = Float64MultiArray()
-        msg.layout.dim = [MultiArrayDimension(label="joints", size=len(command), stride=len(command))]
-        msg.data = command[order].tolist()
+        msg = velocity_command(command, order)
         pub.publish(msg)
         if to_robot and pub_ctl is not None:
             pub_ctl.publish(msg)
@@ -278,8 +287,7 @@ def run(job: dict, limits, publish, measured: dict) -> dict:
     gc_was_enabled = gc.isenabled()
     gc.disable()  # the cyclic collector stops the thread for tens of ms over a large heap
     clock = Schedule(T, float(job["t0"]))
-    buf.floats[T0] = clock.t0
-    buf.floats[HEARTBEAT] = time.monotonic()
+    buf.floats[T0] = clock.t0  # (the heartbeat stays at t0, as the node set it, until the first tick)
     last, prev = np.zeros(limits.dof), np.zeros(limits.dof)
     reason, reflex = "", None
     try:

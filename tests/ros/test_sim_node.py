@@ -23,7 +23,7 @@ from action_msgs.msg import GoalStatus
 
 from .conftest import ROOT, Proc, console_script, max_late, start_monitor, start_node
 
-from fluidlab_msgs.action import Execute, Optimise  # noqa: E402
+from fluidlab_msgs.action import Execute, Optimise, Replay  # noqa: E402
 from fluidlab_msgs.srv import GetTrajectory, ListTrajectories  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -126,13 +126,13 @@ def test_execute_on_the_twin_streams_at_the_rate_within_limits_and_the_fluid_fol
         assert accepted and status == GoalStatus.STATUS_SUCCEEDED, (result.message, node.text())
         assert result.success and result.time_scale >= 1.0
         assert feedback[-1].progress == pytest.approx(1.0) or any(f.progress > 0.9 for f in feedback)
-        # m: the twin follows the plan; late ticks (the arm holds the previous command longer) add drift. On a
-        # quiet machine the stream is late by under 10 ms (0.4 mm of error). Beside a cold Taichi compile in CI
-        # it once ran 2,289 of 2,699 ticks late, up to 237 ms, and drifted 41 mm: the tight bound holds only
-        # when the node reports no tick later than 50 ms.
-        on_time = max_late(result.message) < 0.05
+        # m: the twin follows the plan; late ticks (the arm holds the previous command longer) add drift. When
+        # the stream was a thread of the node it once ran 2,289 of 2,699 ticks late beside a cold Taichi compile
+        # in CI, up to 237 ms, and drifted 41 mm; in its own process (bench/results/stream_cpu.txt) it stays
+        # within a few ms of its timeline beside the fluid twin, an optimiser and two busy cores.
         worst = max([result.max_tracking_error] + [f.tracking_error for f in feedback])
-        assert worst < (0.03 if on_time else 0.1), (worst, result.message)
+        assert worst < 0.03, (worst, result.message)
+        assert max_late(result.message) < 0.05, result.message
         # the fluid twin stepped with the tool: particles arrive (its first compile may take a while)
         deadline = time.monotonic() + 240
         while len(particles) < 2 and time.monotonic() < deadline:
@@ -162,11 +162,7 @@ def test_execute_on_the_twin_streams_at_the_rate_within_limits_and_the_fluid_fol
     expected = int(round(result.duration * 500))
     # the plan's commands, then the position feedback's correction ramped out (at most 250 commands)
     assert expected <= len(commands) <= expected + 250, f"the monitor saw {len(commands)}, the plan has {expected}"
-    if on_time:
-        assert stats["rate_median"] == pytest.approx(500.0, rel=0.01), stats
-    else:  # after a stall the schedule sends every 1 ms until it is back on its timeline (the same CI run as
-        # above: median over 50-command windows 511 Hz, whole span 482 Hz): the timeline as a whole still holds
-        assert stats["rate"] == pytest.approx(500.0, rel=0.05), (stats, result.message)
+    assert stats["rate_median"] == pytest.approx(500.0, rel=0.01), stats
     assert_within_limits(commands)
     # the twin ends at rest where the plan ends (the feedback removes the drift of late commands)
     from fluidlab_ros.mounting import load_mounting
@@ -270,6 +266,13 @@ def bad_files(folder):
     far = Trajectory(task="Mixing", dt=src.dt, tool=src.tool, initial_pose=[1.5, 0.0, 0.3, 0, 0, 0, 1],
                      twists=np.zeros((10, 6)))
     far.save(folder / "Mixing" / "out_of_reach.json")
+    outside = folder.parent / "outside"  # a trajectory outside the folder, and links to it from inside
+    outside.mkdir(exist_ok=True)
+    src.save(outside / "elsewhere.json")
+    (folder / "Mixing" / "linked_out.json").symlink_to(outside / "elsewhere.json")
+    (folder / "Linked").symlink_to(outside, target_is_directory=True)  # ... and a linked task folder
+    with open(folder / "Mixing" / "huge.json", "wb") as f:  # 40 MB: sparse, never parsed
+        f.truncate(40_000_000)
 
 
 def test_bad_input_is_refused_with_a_reason_and_nothing_is_sent(ros_env, client, tmp_path, trajectories):
@@ -287,6 +290,10 @@ def test_bad_input_is_refused_with_a_reason_and_nothing_is_sent(ros_env, client,
             (Execute.Goal(trajectory_name=MIXING, target="moon"), "unknown target 'moon'"),
             (Execute.Goal(trajectory_name=MIXING, speed_scale=2.0), "speed_scale"),
             (Execute.Goal(trajectory_name=MIXING, target="robot"), "robot mode"),
+            (Execute.Goal(trajectory_name="linked_out"), "leads out of the trajectory folder"),
+            (Execute.Goal(trajectory_name="elsewhere"), "leads out of the trajectory folder"),
+            (Execute.Goal(trajectory_name="huge"), "more than the 32 MB"),
+            (Execute.Goal(trajectory_name="x" * 100_000), "not allowed"),
         ]
         for goal, phrase in cases:
             accepted, status, result = client.run_goal(act, goal, timeout=120)
@@ -303,6 +310,18 @@ def test_bad_input_is_refused_with_a_reason_and_nothing_is_sent(ros_env, client,
         ]
         for goal, phrase in ocases:
             accepted, status, result = client.run_goal(opt, goal, timeout=60)
+            assert accepted and status == GoalStatus.STATUS_ABORTED, (goal, result.message if result else None)
+            assert phrase.lower() in result.message.lower(), (phrase, result.message)
+        rp = client.action(Replay, "/sim_node/replay")
+        (tmp_path / "recordings").mkdir(exist_ok=True)
+        rcases = [
+            (Replay.Goal(recording_path="nowhere"), "no recording folder"),
+            (Replay.Goal(recording_path=str(trajectories)), "outside the recording folder"),
+            (Replay.Goal(recording_path="../trajectories"), "outside the recording folder"),
+            (Replay.Goal(recording_path=str(tmp_path / "recordings"), out_dir="/tmp/../etc"), "outside the recording"),
+        ]
+        for goal, phrase in rcases:
+            accepted, status, result = client.run_goal(rp, goal, timeout=60)
             assert accepted and status == GoalStatus.STATUS_ABORTED, (goal, result.message if result else None)
             assert phrase.lower() in result.message.lower(), (phrase, result.message)
         got = client.call(client.service(GetTrajectory, "/sim_node/get_trajectory"), GetTrajectory.Request(name="x/y"))

@@ -10,11 +10,14 @@ client are separate processes).
 - The fluid twin's worker is killed: the execution stops with a ramp and names it; the next execution gets a
   new worker.
 - The optimiser's worker is killed: the goal aborts with the exit code; the next optimise goal runs.
+- A trajectory file overwritten while it runs changes nothing: the node streams the plan it verified from the
+  bytes it read (the recording holds their hash).
 Every recording stays readable, and every command the monitor saw, ramps included, stays within the FR3's
 official limits and ends at rest.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import signal
@@ -88,9 +91,16 @@ def test_a_killed_or_stalled_stream_process_is_caught_ramped_to_rest_and_replace
             assert len(sent) > 100, len(sent)
             assert not np.any(sent[-1]), "the recording ends with the arm commanded to rest"
             pid, at = pid_in_log(node, r"command stream process (\d+) ready", at)  # a new one
-        # the next goal runs on the new stream process, to the end
-        accepted, status, result = client.run_goal(act, Execute.Goal(trajectory_name=MIXING), timeout=120)
-        assert accepted and status == GoalStatus.STATUS_SUCCEEDED, result.message
+        # the next goal runs on the new stream process, to the end, and what runs is the file as it was read and
+        # verified: overwriting it mid-motion changes nothing (the recording names the bytes that were planned)
+        path = trajectories / "Mixing" / f"{MIXING}.json"
+        original = path.read_bytes()
+        handle = run_until(client, act, node, Execute.Goal(trajectory_name=MIXING), 0.1)
+        path.write_text('{"format": "fluidlab-trajectory", "twists": [[1e9')
+        res = client.result(handle, 120, "the result of the goal whose file changed")
+        assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.message
+        meta = read_recording(res.result.recording_path).metadata
+        assert meta["trajectory_sha256"] == hashlib.sha256(original).hexdigest()
         time.sleep(0.2)
     finally:
         node_rc = node.stop()
