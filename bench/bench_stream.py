@@ -121,11 +121,11 @@ def run_once(tmp: Path, load: str, rate: float, env: dict) -> dict:
     stats["tracking_mm"] = res.result.max_tracking_error * 1e3
     # the sender's own view: the stamps the stream process wrote as each command went out (the recording)
     from fluidlab_ros.recording import read_recording
-    if res.result.recording_path:
-        sent_t = read_recording(res.result.recording_path).commands[0]
+    sent_t = read_recording(res.result.recording_path).commands[0] if res.result.recording_path else []
+    if len(sent_t) > 1:
         gaps = np.diff(sent_t) * 1e3
         stats.update(send_p999_ms=float(np.percentile(gaps, 99.9)), send_max_ms=float(gaps.max()))
-    else:  # refused before anything was sent
+    else:  # refused, or stopped, before a second command was sent
         stats.update(send_p999_ms=float("nan"), send_max_ms=float("nan"))
         print(f"the execution was refused: {msg}", file=sys.stderr)
     stats["result"] = msg

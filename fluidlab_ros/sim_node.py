@@ -75,13 +75,14 @@ from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, RunBuffer, StreamProcess, row_state,
-                                 rows_for, write_row)
+from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess,
+                                 row_state, rows_for, write_row)
 from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
 from fluidlab_ros import workers
 
 MODES = ("twin", "robot")
+PLAN_PICKUP_TIMEOUT = 5.0  # s the stream process may take to take a plan (nothing is sent meanwhile)
 STATE_EVERY = 5  # a recording holds every command, and the arm states and tool poses of every 5th
 TARGETS = ("twin", "robot")
 
@@ -856,14 +857,17 @@ class SimNode(Node):
         n_task0 = int(round(pl.task_start_time * self.control_rate))
         n_task1 = int(round(pl.task_end_time * self.control_rate))
         fluid_every = max(1, int(round(traj.dt * self.control_rate)))
-        lead = 0.05  # s from now to the first command: the same instant on both clocks
-        t0, start_wall = time.monotonic() + lead, time.time() + lead
-        stream.t0, stream.start_ns = t0, int(start_wall * 1e9)
-        buf.floats[HEARTBEAT] = t0
-        if stream.recorder is not None:
-            stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
-                "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
-            stream.recorder.write_metadata(stream.metadata)
+        # the first command's deadline: 50 ms from now, or later if the stream process takes the plan later (a
+        # loaded machine: nothing has been sent, so a late start is harmless); it reports the one it chose (T0)
+        t0 = time.monotonic() + 0.05
+
+        def start(t0_actual: float):
+            start_wall = time.time() + (t0_actual - time.monotonic())  # the same instant on both clocks
+            stream.t0, stream.start_ns = t0_actual, int(start_wall * 1e9)
+            if stream.recorder is not None:
+                stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
+                    "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
+                stream.recorder.write_metadata(stream.metadata)
         job = {"buffer": buf.spec(), "velocities": pl.velocities, "positions": pl.positions,
                "control_rate": self.control_rate, "controller_order": self.controller_order,
                "to_robot": stream.to_robot, "mode": self.mode, "late_tick_limit": self.late_tick_limit,
@@ -873,9 +877,23 @@ class SimNode(Node):
         sp.jobs.put(job)
         seen = 0
         failure = ""
+        started = False
+        pickup_limit = time.monotonic() + PLAN_PICKUP_TIMEOUT
         try:
             while True:
                 died = wait([sp.proc.sentinel], timeout=T)
+                if not started:
+                    if buf.floats[T0] > 0:  # the stream process took the plan (and set the heartbeat first)
+                        started = True
+                        start(float(buf.floats[T0]))
+                    elif died:
+                        pass  # handled below
+                    elif time.monotonic() > pickup_limit:
+                        failure = (f"the command stream process did not take the plan within "
+                                   f"{PLAN_PICKUP_TIMEOUT:g} s; nothing was sent")
+                        break
+                    else:
+                        continue
                 seen = self._drain(stream, seen, n_task0, n_task1, fluid_every)
                 try:
                     msg = sp.results.get_nowait()
@@ -898,6 +916,8 @@ class SimNode(Node):
                                f"(late_tick_limit {self.late_tick_limit * 1e3:g} ms)")
                     break
             if failure:
+                if not started:
+                    start(time.monotonic())
                 self._take_over(stream, failure, n_task0, n_task1, fluid_every, seen)
             if stream.outcome != "done":
                 self.get_logger().warn(f"the stream stopped: {stream.outcome}")

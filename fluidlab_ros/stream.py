@@ -286,8 +286,12 @@ def run(job: dict, limits, publish, measured: dict) -> dict:
 
     gc_was_enabled = gc.isenabled()
     gc.disable()  # the cyclic collector stops the thread for tens of ms over a large heap
-    clock = Schedule(T, float(job["t0"]))
-    buf.floats[T0] = clock.t0  # (the heartbeat stays at t0, as the node set it, until the first tick)
+    # the node's deadline for command 0, or 5 ms from now if the plan came later than that (nothing has been sent:
+    # a late start is harmless, where a first tick counted late would stop the stream before it began)
+    t0 = max(float(job["t0"]), time.monotonic() + 0.005)
+    clock = Schedule(T, t0)
+    buf.floats[HEARTBEAT] = t0  # the heartbeat stays at t0 until the first tick
+    buf.floats[T0] = t0  # last: the node starts following when it sees T0
     last, prev = np.zeros(limits.dof), np.zeros(limits.dof)
     reason, reflex = "", None
     try:
