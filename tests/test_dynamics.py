@@ -12,7 +12,6 @@ docs/execution.md, "Dynamics and collisions").
 """
 import dataclasses
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from fluidlab_ros.pipeline import plan
 from fluidlab_ros.robot import READY_Q, Robot
 
 from .conftest import report
-from .test_pipeline import DH, TOOL
+from .test_pipeline import TOOL, dh_flange, dh_link_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 G = 9.81
@@ -39,33 +38,17 @@ G = 9.81
 # --- independent kinematics and energy ------------------------------------------------------------------------
 
 
-def dh_link_frames(q):
-    """4x4 frames of links 1..7 and the tool (TOOL on the flange) from the modified DH product."""
-    def rx(al):
-        c, s = math.cos(al), math.sin(al)
-        return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
-
-    def rz(th):
-        c, s = math.cos(th), math.sin(th)
-        return np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-
-    def tr(x, z):
-        m = np.eye(4)
-        m[0, 3], m[2, 3] = x, z
-        return m
-
-    t, frames = np.eye(4), []
-    for (a, d, al), qi in zip(DH, q):
-        t = t @ rx(al) @ tr(a, 0.0) @ rz(qi) @ tr(0.0, d)
-        frames.append(t)
-    tool = t @ tr(0.0, 0.107) @ tr(0.0, TOOL[2])
-    return frames, tool
+def dh_frames_and_tool(q):
+    """4x4 frames of links 1..7 and of the tool (TOOL on the flange) from the modified DH product."""
+    tool = dh_flange(q)
+    tool[:3, 3] += TOOL[2] * tool[:3, 2]
+    return dh_link_frames(q), tool
 
 
 def potential_energy(robot: str, q) -> float:
     """V = sum_i m_i g z_i (J) over links 1..7 and the default payload at the tool frame, from the data file."""
     doc = json.loads(robot_models.inertials_path(robot).read_text())
-    frames, tool = dh_link_frames(q)
+    frames, tool = dh_frames_and_tool(q)
     v = 0.0
     for i, f in enumerate(frames, start=1):
         link = doc["links"][f"{robot}_link{i}"]

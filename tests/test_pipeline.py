@@ -30,8 +30,8 @@ MARGIN = 0.8
 CENTER = np.array([0.5, 0.0, 0.05])  # tool tip 5 cm above the cup's base at (0.5, 0, 0)
 
 
-def dh_flange(q) -> np.ndarray:
-    """4x4 flange pose from the modified DH product RotX(alpha) TransX(a) RotZ(q) TransZ(d)."""
+def dh_link_frames(q) -> list[np.ndarray]:
+    """4x4 frames of links 1..7 from the modified DH product RotX(alpha) TransX(a) RotZ(q) TransZ(d)."""
     def rx(al):
         c, s = math.cos(al), math.sin(al)
         return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
@@ -45,10 +45,18 @@ def dh_flange(q) -> np.ndarray:
         m[0, 3], m[2, 3] = x, z
         return m
 
-    t = np.eye(4)
+    t, frames = np.eye(4), []
     for (a, d, al), qi in zip(DH, q):
         t = t @ rx(al) @ tr(a, 0.0) @ rz(qi) @ tr(0.0, d)
-    return t @ tr(0.0, 0.107)
+        frames.append(t)
+    return frames
+
+
+def dh_flange(q) -> np.ndarray:
+    """4x4 flange pose: link 7's frame, then d = 0.107 m along its z."""
+    t = dh_link_frames(q)[-1].copy()
+    t[:3, 3] += 0.107 * t[:3, 2]
+    return t
 
 
 def dh_tool_position(q) -> np.ndarray:
