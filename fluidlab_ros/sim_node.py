@@ -144,10 +144,8 @@ class Stream:
     late_ticks: int = 0  # ticks later than half a period
     max_late: float = 0.0  # s
     done: threading.Event = field(default_factory=threading.Event)
-    t0: float = 0.0  # time.monotonic() of command 0's deadline
     recorder: object = None  # recording.Recorder, or None
     planned_tool: np.ndarray | None = None  # (K + 1, 7) tool poses of the plan's positions
-    last_msg: object = None  # the last command message sent
     fk: object = None  # a Robot with the task's tool frame for the stream thread (pinocchio data is per thread)
     metadata: dict | None = None  # the recording's metadata; the stream thread adds the start time
     recorded: int = 0  # commands recorded
@@ -863,7 +861,7 @@ class SimNode(Node):
 
         def start(t0_actual: float):
             start_wall = time.time() + (t0_actual - time.monotonic())  # the same instant on both clocks
-            stream.t0, stream.start_ns = t0_actual, int(start_wall * 1e9)
+            stream.start_ns = int(start_wall * 1e9)
             if stream.recorder is not None:
                 stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
                     "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
