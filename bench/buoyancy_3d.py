@@ -2,12 +2,15 @@
 water in a closed 12 cm box (the domain's walls), 24 cells across; the share of the cube below the far-field
 surface every 0.1 s. Archimedes: 0.50.
 
-    python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M]
+    python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
+        [--substep-factor F] [--bulk-factor F] [--width M] [--density KG_M3] [--no-save]
 
 BODY: rigid | elastic. LIQUID: std (the catalogue's water) | nt (the same water without tension: p = max(0,
 −λ(J − 1)), J ≤ 1, a model registered here, as a user would). --drop M: the cube starts M above the flat
 surface (dropped); otherwise at Archimedes' depth (water filled around it), or --raise M above it.
-Appends its table to bench/results/buoyancy_3d.txt.
+--substep-factor and --bulk-factor scale the stable substep count and the water's bulk modulus (the knobs
+that separate the transfers' dissipation from the sound waves', docs/engine.md). Appends its table to
+bench/results/buoyancy_3d.txt unless --no-save.
 """
 from __future__ import annotations
 
@@ -28,6 +31,12 @@ def main():
     ap.add_argument("--res", type=int, default=24)
     ap.add_argument("--drop", type=float, default=None)
     ap.add_argument("--raise", dest="lift", type=float, default=0.0)
+    ap.add_argument("--substep-factor", type=float, default=1.0, help="substeps × this (over the stable count)")
+    ap.add_argument("--bulk-factor", type=float, default=1.0, help="the water's bulk modulus × this")
+    ap.add_argument("--width", type=float, default=0.12, help="tank width (m)")
+    ap.add_argument("--density", type=float, default=500.0, help="the cube's density (kg/m³)")
+    ap.add_argument("--every", type=float, default=0.1, help="print every this many seconds")
+    ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
 
@@ -48,9 +57,9 @@ def main():
         model: ClassVar[str] = "liquid_no_tension"
 
     fl.init("cpu")
-    width, level, b, rho = 0.12, 0.06, 0.04, 500.0
-    water = M.WATER if args.liquid == "std" else NoTensionLiquid("water_no_tension", density=M.WATER.density,
-                                                                  bulk_modulus=M.WATER.bulk_modulus)
+    width, level, b, rho = args.width, 0.06, 0.04, args.density
+    cls = M.NewtonianLiquid if args.liquid == "std" else NoTensionLiquid
+    water = cls(f"water_{args.liquid}", density=M.WATER.density, bulk_modulus=M.WATER.bulk_modulus * args.bulk_factor)
     scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1)
     c = width / 2
     if args.drop is not None:
@@ -67,25 +76,28 @@ def main():
     body = M.Rigid("light_rigid", density=rho) if args.body == "rigid" else \
         M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
     scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)), body, name="cube")
-    scene.substeps = scene.stable_substeps()
+    scene.substeps = int(round(scene.stable_substeps() * args.substep_factor))
     sim = scene.build()
     dx, s = width / args.res, scene.particle_spacing
     waters = [h for h in sim.handles if h != "cube"]
     t0, rows = time.time(), []
     while sim.time < args.seconds - 1e-9:
-        sim.step(n=int(round(0.1 / scene.dt)))
+        sim.step(n=int(round(args.every / scene.dt)))
         xw = np.concatenate([sim.positions(h) for h in waters])
-        far = (np.abs(xw[:, 0] - c) > 0.04) | (np.abs(xw[:, 1] - c) > 0.04)
+        far = (np.abs(xw[:, 0] - c) > b) | (np.abs(xw[:, 1] - c) > b)
         surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
         xc = sim.positions("cube")
         depth = (surface - (xc[:, 2].min() - 0.5 * s)) / b  # the cube's lowest face below the surface, over b
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
     start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
-    text = "\n".join([f"{args.body} cube in {args.liquid} water, {args.res} cells, {start}: {len(sim.positions())} "
+    text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ in {args.liquid} water (λ × {args.bulk_factor:g}), "
+                      f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
                       f"{'t s':>5} {'depth / b':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"
-    print(text)
+    print(text, flush=True)
+    if args.no_save:
+        return
     with open(Path(__file__).resolve().parent / "results" / "buoyancy_3d.txt", "a") as f:
         f.write(text + "\n")
 
