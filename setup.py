@@ -35,7 +35,9 @@ COLCON = ["colcon-core==0.21.3", "colcon-ros==0.5.0", "colcon-python-setup-py==0
           "colcon-library-path==0.2.1", "colcon-pkg-config==0.1.0", "colcon-recursive-crawl==0.2.3",
           "colcon-test-result==0.3.8", "colcon-bash==0.5.0", "colcon-package-selection==0.2.10",
           "colcon-package-information==0.4.1"]
-TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0", *COLCON]
+# ray: the optimiser benchmark's job scheduler (fluidlab_core/benchmark.py; without it runs go to a process pool).
+BENCH = ["ray==2.60.0"]
+TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0", *COLCON, *BENCH]
 
 setup(
     name=PACKAGE,
@@ -49,7 +51,7 @@ setup(
                   "fluidlab_core.tasks": ["data/*.npz"]},
     python_requires=">=3.11",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": TEST_REQUIRES},
+    extras_require={"test": TEST_REQUIRES, "bench": BENCH},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

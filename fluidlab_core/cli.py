@@ -133,6 +133,12 @@ def _cmd_optimise(args):
     return 0
 
 
+def _cmd_benchmark(args):
+    from fluidlab_core import benchmark
+
+    return benchmark.main(args.args)
+
+
 def _load_trajectory(path):
     from fluidlab_core.trajectory import Trajectory
 
@@ -245,6 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-genesis", action="store_true", help="skip the Genesis comparison")
     _add_backend(p)
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("benchmark", help="the optimiser benchmark: tasks x methods x seeds, resumable "
+                       "(python -m fluidlab_core.benchmark --help)", add_help=False)
+    p.add_argument("args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_benchmark)
 
     p = sub.add_parser("list", help="list the tasks and their sizes")
     p.set_defaults(func=_cmd_list)

@@ -39,13 +39,22 @@ def check_request(task, method: str, budget, seed):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
 
 
+def cmaes_size(task) -> int:
+    """The number of parameters CMA-ES searches for `task` (optim/cmaes.py's parametrisation)."""
+    from fluidlab_core.optim import params as P
+
+    return P.knots(task, 8).size
+
+
 TECHNIQUES = ("soft_contact", "expanding_region", "attraction", "gradient_sharing")  # DP's, each switchable
 
 
 def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_iterations: int | None = None,
-             size: str = "small", without=()):
+             size: str = "small", without=(), min_generations: int | None = None):
     """Optimise `task` (a Task or a task name, made at `size`) and return its Trajectory. `without`: DP techniques
-    to switch off (names from TECHNIQUES), for ablations; only with method "dp"."""
+    to switch off (names from TECHNIQUES), for ablations; only with method "dp". `min_generations` (CMA-ES): the
+    population is chosen so that the budget holds that many complete generations, and a budget that cannot is
+    refused before anything runs (optim/cmaes.py)."""
     from fluidlab_core import tasks
     from fluidlab_core.optim import cmaes, dp
 
@@ -59,7 +68,10 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
     if without and method != "dp":
         raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
     if method == "cma-es":
-        result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
+        if min_generations:
+            cmaes.population_for(task, int(budget), int(min_generations), cmaes_size(task))
+        result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
+                           min_generations=min_generations)
     else:
         opts = dp.DPOptions(**{w: False for w in without}) if method == "dp" else dp.DPOptions.plain()
         result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations)

@@ -131,7 +131,7 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
         elapsed = time.perf_counter() - t0
         region_losses.append(task_loss)
         if callback and callback(Progress(method, iteration, task_loss, best[0], steps_used, budget, elapsed,
-                                          region)):
+                                          region, best[1], par)):
             break
         if region < horizon:
             plateau = len(region_losses) >= 3 and abs(region_losses[-1] - region_losses[-3]) <= \

@@ -20,6 +20,8 @@ class Progress:
     budget: int
     elapsed: float
     region: int
+    best_theta: object = None  # the parameters behind best_loss (for a caller that evaluates them elsewhere)
+    parametrisation: object = None  # what turns them into actions: .actions(θ), .tool_position(θ)
 
     def line(self) -> str:
         best = "-" if not np.isfinite(self.best_loss) else f"{self.best_loss:.5g}"

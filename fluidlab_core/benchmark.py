@@ -1,0 +1,368 @@
+"""The optimiser benchmark: tasks × methods × seeds at one budget, as independent jobs, resumable.
+
+    python -m fluidlab_core.benchmark [--tasks ...] [--methods dp dp-h cma-es] [--seeds 0 1 2]
+        [--rollouts 150] [--size small] [--out bench/results/benchmark_small] [--jobs 2] [--ray-address ADDR]
+    fluidlab benchmark ...            (the same)
+
+What a run is. One optimisation of one task by one method from one seed, with a budget of `--rollouts` ×
+the task's horizon simulated steps. It is the same for every method: a DP iteration over r steps counts r;
+its backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
+`--min-generations` generations (default 30). Its population is chosen to fit (optim/cmaes.py), and a budget
+that cannot hold them is refused before anything runs. Every run is judged on the task's reference
+physics (hard contact): its final loss and the reward return r = Σ_k (c1 − c2 ℓ_k), with c1, c2 per task
+(Task.reward_c1, reward_c2; the table states them).
+
+Curves. While a run goes on, the best parameters so far are evaluated on the reference physics at
+`--checkpoints` evenly spaced points of the budget. These evaluations are bookkeeping: they count neither in
+the budget nor in the run's wall time. So every method's curve is on the same physics and the same axis: best
+reference loss against simulated steps, and against the run's own wall time. A curve has flattened when its
+last 20 % of the budget improved it by less than 1 % of its loss there; the table says how many seeds did.
+
+Jobs. With Ray installed (`pip install ray`, part of the test extras), runs are Ray tasks. On one machine a
+local Ray starts with `--jobs` CPUs (default: all cores), one run per CPU, and each run's Taichi gets
+`--threads` threads (default: cores / jobs). Pass `--ray-address auto` (or host:port) to use a running
+cluster: start it with `ray start --head` here and `ray start --address HOST:6379` on the other machines. Each
+machine needs only this package installed. Without Ray, runs go to a pool of `--jobs` processes.
+
+Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
+same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
+table (OUT/table.txt), one plot per task (OUT/curves_<task>.png) and the trajectories (OUT/trajectories/).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+FLAT_WINDOW = 0.2  # the last share of the budget a flattened curve improves by less than FLAT_TOLERANCE
+FLAT_TOLERANCE = 0.01
+
+
+def run_key(spec: dict) -> str:
+    """The identity of a run in runs.jsonl."""
+    return f"{spec['task']}|{spec['method']}|{spec['seed']}|{spec['size']}|{spec['budget']}"
+
+
+def run_job(spec: dict) -> dict:
+    """One run (in a worker process): optimise, evaluate the best so far at the checkpoints, save the trajectory.
+    Returns the run's record; an error becomes a record with 'error' (the sweep goes on)."""
+    import traceback
+
+    t_start = time.perf_counter()
+    try:
+        import fluidlab_core
+        from fluidlab_core import optim, tasks
+        from fluidlab_core.trajectory_store import TrajectoryStore
+
+        fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
+        task = tasks.make(spec["task"], size=spec["size"])
+        budget = int(spec["budget"])
+        marks = [int(round(budget * (i + 1) / spec["checkpoints"])) for i in range(spec["checkpoints"])]
+        ref = task.simulator(grad=False, contact="hard")
+        curve, spent = [], {"eval": 0.0}
+        t0 = time.perf_counter()
+
+        def evaluate(theta, par):
+            e0 = time.perf_counter()
+            loss = task.evaluate(par.actions(theta), tool_position=par.tool_position(theta), sim=ref,
+                                 rewards=False)["loss"]
+            spent["eval"] += time.perf_counter() - e0
+            return float(loss)
+
+        def callback(p):
+            if marks and p.steps >= marks[0]:  # one evaluation for every checkpoint this iteration passed
+                while marks and p.steps >= marks[0]:
+                    marks.pop(0)
+                wall = time.perf_counter() - t0 - spent["eval"]
+                curve.append([int(p.steps), evaluate(p.best_theta, p.parametrisation), round(wall, 3)])
+            return False
+
+        traj = optim.optimise(task, spec["method"], budget, seed=int(spec["seed"]), callback=callback,
+                              min_generations=spec.get("min_generations") if spec["method"] == "cma-es" else None)
+        wall = time.perf_counter() - t0 - spent["eval"]
+        final = float(traj.metadata["final_loss"])
+        if not curve or curve[-1][0] < traj.metadata["steps_used"]:
+            curve.append([int(traj.metadata["steps_used"]), final, round(wall, 3)])
+        store = TrajectoryStore(Path(spec["out"]) / "trajectories")
+        name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
+        path = traj.save(store.new_path(task.name, name, overwrite=True))
+        return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
+                "final_loss": final, "return": float(traj.metadata["return"]),
+                "steps_used": int(traj.metadata["steps_used"]), "iterations": int(traj.metadata["iterations"]),
+                "settings": traj.metadata.get("settings", {}), "curve": curve, "wall": round(wall, 2),
+                "eval_seconds": round(spent["eval"], 2), "horizon": task.horizon,
+                "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
+                "host": os.uname().nodename, "trajectory": str(path)}
+    except Exception as err:  # noqa: BLE001 - one failed run must not end the sweep; the record says why
+        return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
+                "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:],
+                "wall": round(time.perf_counter() - t_start, 2), "host": os.uname().nodename}
+
+
+def load_runs(path: Path) -> list[dict]:
+    """The records of runs.jsonl (a line cut short by a crash while it was written is skipped)."""
+    runs = []
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                runs.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return runs
+
+
+def _append(path: Path, record: dict):
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def flattened(curve) -> bool | None:
+    """Whether the last FLAT_WINDOW of the budget improved the best loss by less than FLAT_TOLERANCE of it;
+    None for a curve too short to say."""
+    if len(curve) < 3:
+        return None
+    steps = np.array([c[0] for c in curve], float)
+    best = np.minimum.accumulate(np.array([c[1] for c in curve], float))
+    cut = steps[-1] * (1.0 - FLAT_WINDOW)
+    before = best[steps <= cut]
+    if len(before) == 0:
+        return None
+    ref = before[-1]
+    return bool(ref - best[-1] <= FLAT_TOLERANCE * max(abs(ref), 1e-30))
+
+
+def _best_at(curve, axis: int, at: float) -> float:
+    """Best reference loss of a run by `at` on axis 0 (steps) or 2 (wall s); NaN before its first point."""
+    vals = [c[1] for c in curve if c[axis] <= at + 1e-9]
+    return float(np.min(vals)) if vals else float("nan")
+
+
+def table(runs: list[dict], refused: list[dict] | None = None) -> str:
+    ok = [r for r in runs if "final_loss" in r]
+    lines = []
+    if ok:
+        size, budget = ok[0]["size"], ok[0]["budget"]
+        lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
+                     f"size {size}, budget {budget} simulated steps per run. Lower loss, higher return is better.")
+        lines.append("'flat': seeds whose best loss improved < 1 % over the last 20 % of the budget. "
+                     "'loss @ equal wall': each method's best loss by the wall time of the task's fastest method "
+                     "('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
+                     "the kernels (the first runs of a sweep compile; later ones load Taichi's cache).")
+    for task in dict.fromkeys(r["task"] for r in runs):
+        tr = [r for r in ok if r["task"] == task]
+        if tr:
+            lines.append("")
+            lines.append(f"{task}: horizon {tr[0]['horizon']} steps, reward r = {tr[0]['reward_c1']:g} − "
+                         f"{tr[0]['reward_c2']:g} ℓ per step")
+            lines.append(f"  {'method':<8} {'final loss':>24} {'return':>20} {'n':>2} {'flat':>5} {'wall s':>8} "
+                         f"{'loss @ equal wall':>18}")
+        methods = list(dict.fromkeys(r["method"] for r in runs if r["task"] == task))
+        walls = {m: np.mean([r["wall"] for r in tr if r["method"] == m]) for m in methods
+                 if any(r["method"] == m for r in tr)}
+        t_equal = min(walls.values()) if walls else float("nan")
+        for m in methods:
+            mr = [r for r in tr if r["method"] == m]
+            failed = [r for r in runs if r["task"] == task and r["method"] == m and "error" in r]
+            if not mr:
+                why = failed[0]["error"][:110] if failed else "no finished run"
+                lines.append(f"  {m:<8} ({why})")
+                continue
+            f = np.array([r["final_loss"] for r in mr])
+            ret = np.array([r["return"] for r in mr])
+            flat = [flattened(r["curve"]) for r in mr]
+            reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
+            at_equal = f"{np.mean(reached):.4e}" if len(reached) == len(mr) else "not reached"
+            lines.append(f"  {m:<8} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
+                         f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} {at_equal:>18}"
+                         + (f"  ({len(failed)} failed)" if failed else ""))
+    for r in refused or []:
+        lines.append(f"refused: {r['task']} {r['method']}: {r['why']}")
+    return "\n".join(lines)
+
+
+def plot(runs: list[dict], out: Path) -> list[Path]:
+    """One PNG per task: best reference loss against simulated steps and against wall time, a line per method
+    (the mean over seeds) with a band from the best to the worst seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    ok = [r for r in runs if "final_loss" in r and r.get("curve")]
+    for task in dict.fromkeys(r["task"] for r in ok):
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for m in dict.fromkeys(r["method"] for r in ok if r["task"] == task):
+            mr = [r for r in ok if r["task"] == task and r["method"] == m]
+            for ax, axis, label in ((axes[0], 0, "simulated steps"), (axes[1], 2, "wall time (s)")):
+                top = max(r["curve"][-1][axis] for r in mr)
+                grid = np.linspace(0, top, 60)[1:]
+                ys = np.array([[_best_at(r["curve"], axis, g) for g in grid] for r in mr])
+                keep = np.isfinite(ys).all(axis=0)  # from where every seed has a point
+                ys, grid = ys[:, keep], grid[keep]
+                line, = ax.plot(grid, ys.mean(axis=0), label=f"{m} ({len(mr)} seeds)")
+                ax.fill_between(grid, ys.min(axis=0), ys.max(axis=0), color=line.get_color(), alpha=0.2)
+                ax.set_xlabel(label)
+                ax.set_ylabel("best loss (reference physics)")
+        axes[0].set_title(f"{task}: best loss vs simulated steps")
+        axes[1].set_title(f"{task}: best loss vs wall time")
+        axes[0].legend()
+        fig.tight_layout()
+        path = out / f"curves_{task}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
+    """(submit(spec) -> handle, wait(handles) -> (done record, remaining handles), shutdown)."""
+    if use_ray:
+        import ray
+
+        owned = not ray.is_initialized()  # a caller's Ray session (and its warm workers) is used and left running
+        if owned and ray_address:
+            ray.init(address=ray_address, log_to_driver=False, configure_logging=False)
+        elif owned:
+            ray.init(num_cpus=jobs, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+
+        def submit(spec):
+            return remote.options(runtime_env={"env_vars": {"FLUIDLAB_CPU_THREADS": str(threads)}}).remote(spec)
+
+        def wait(handles):
+            done, rest = ray.wait(handles, num_returns=1)
+            return ray.get(done[0]), rest
+
+        return submit, wait, (ray.shutdown if owned else (lambda: None))
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor
+    from concurrent.futures import wait as futures_wait
+
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"))
+
+    def wait_pool(handles):
+        done, rest = futures_wait(handles, return_when=FIRST_COMPLETED)
+        first = next(iter(done))
+        return first.result(), [h for h in handles if h is not first]
+
+    return (lambda spec: pool.submit(run_job, spec)), wait_pool, (lambda: pool.shutdown(wait=True))
+
+
+def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int, size: str, out: Path,
+          jobs: int | None = None, threads: int | None = None, ray_address: str | None = None,
+          use_ray: bool | None = None, min_generations: int = 30, checkpoints: int = 10, arch: str = "cpu",
+          log=print) -> list[dict]:
+    """Run what is not yet in OUT/runs.jsonl, append each run as it finishes, then write the table and plots.
+    Returns every record of the sweep (finished before or now)."""
+    from fluidlab_core import optim, tasks
+    from fluidlab_core.optim import cmaes
+
+    cores = os.cpu_count() or 1
+    jobs = max(1, int(jobs or cores))
+    threads = max(1, int(threads or cores // jobs))
+    if use_ray is None:
+        try:
+            import ray  # noqa: F401
+
+            use_ray = True
+        except ImportError:
+            use_ray = False
+    unknown = [m for m in methods if m not in optim.METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {', '.join(unknown)}; methods: {', '.join(optim.METHODS)}")
+    out.mkdir(parents=True, exist_ok=True)
+    runs_path = out / "runs.jsonl"
+    specs, refused = [], []
+    for name in tasks_:
+        task = tasks.make(name, size=size)  # refuses an unknown task or size by name
+        budget = int(rollouts) * task.horizon
+        for m in methods:
+            if m == "cma-es":
+                try:
+                    cmaes.population_for(task, budget, min_generations, optim.cmaes_size(task))
+                except ValueError as err:
+                    refused.append({"task": name, "method": m, "why": str(err)})
+                    continue
+            for s in seeds:
+                specs.append({"task": name, "method": m, "seed": int(s), "size": size, "budget": budget,
+                              "arch": arch, "threads": threads, "min_generations": int(min_generations),
+                              "checkpoints": int(checkpoints), "out": str(out.resolve())})
+    for r in refused:
+        log(f"refused: {r['task']} {r['method']}: {r['why']}")
+    previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
+    todo = [s for s in specs if run_key(s) not in previous]
+    todo.sort(key=lambda s: s["method"] == "cma-es")  # gradient runs first: they take longest
+    log(f"{len(specs)} runs in the sweep, {len(specs) - len(todo)} already in {runs_path}, {len(todo)} to run "
+        f"({'Ray at ' + ray_address if ray_address else ('local Ray' if use_ray else 'process pool')}, {jobs} at a "
+        f"time, {threads} Taichi thread(s) each)")
+    records = [previous[run_key(s)] for s in specs if run_key(s) in previous]
+    if todo:
+        submit, wait, shutdown = _executor(jobs, threads, ray_address, use_ray)
+        t0 = time.perf_counter()
+        try:
+            handles = [submit(s) for s in todo]
+            for i in range(len(todo)):
+                rec, handles = wait(handles)
+                _append(runs_path, rec)
+                records.append(rec)
+                status = (f"final loss {rec['final_loss']:.4e}, return {rec['return']:.3f}" if "final_loss" in rec
+                          else f"FAILED: {rec['error']}")
+                log(f"[{i + 1}/{len(todo)}] {rec['task']} {rec['method']} seed {rec['seed']}: {status} "
+                    f"({rec['wall']:.0f} s; sweep {time.perf_counter() - t0:.0f} s)")
+        finally:
+            shutdown()
+    text = table(records, refused)
+    (out / "table.txt").write_text(text + "\n")
+    log(text)
+    for path in plot(records, out):
+        log(f"wrote {path}")
+    return records
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from fluidlab_core.optim import METHODS
+
+    ap = argparse.ArgumentParser(prog="fluidlab benchmark", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--rollouts", type=int, default=150, help="budget per run in rollouts of the task's horizon "
+                    "(default 150: 30 CMA-ES generations of 5)")
+    ap.add_argument("--size", default="small", choices=["small", "paper"])
+    ap.add_argument("--out", default=None, help="folder (default bench/results/benchmark_SIZE)")
+    ap.add_argument("--jobs", type=int, default=None, help="runs at a time on a local Ray or pool (default: cores)")
+    ap.add_argument("--threads", type=int, default=None, help="Taichi CPU threads per run (default cores/jobs)")
+    ap.add_argument("--ray-address", default=None, help="a running Ray cluster ('auto' or host:port)")
+    ap.add_argument("--no-ray", action="store_true", help="a process pool even when Ray is installed")
+    ap.add_argument("--min-generations", type=int, default=30, help="CMA-ES generations a budget must hold")
+    ap.add_argument("--checkpoints", type=int, default=10, help="reference evaluations along each run's budget")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    return ap
+
+
+def main(argv=None) -> int:
+    from fluidlab_core import tasks
+
+    args = build_parser().parse_args(argv)
+    out = Path(args.out or f"bench/results/benchmark_{args.size}")
+    try:
+        sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
+              args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
+              args.checkpoints, args.arch)
+    except (ValueError, KeyError) as err:
+        print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

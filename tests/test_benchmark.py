@@ -1,0 +1,73 @@
+"""The optimiser benchmark (fluidlab_core/benchmark.py): a tiny sweep on a local Ray, resumed; CMA-ES budgets that
+cannot hold its generations are refused; the flattening criterion."""
+import json
+
+import numpy as np
+import pytest
+
+from fluidlab_core import benchmark, optim, tasks
+from fluidlab_core.optim import cmaes
+
+
+def test_cma_es_population_fits_the_generations_or_the_budget_is_refused():
+    task = tasks.make("LatteArtStir", "small")
+    n = optim.cmaes_size(task)
+    default = cmaes.default_population(n)
+    # a generous budget keeps the package's default population; a smaller one shrinks it to fit 30 generations
+    assert cmaes.population_for(task, 30 * default * task.horizon, 30, n) == default
+    assert cmaes.population_for(task, 150 * task.horizon, 30, n) == 5
+    with pytest.raises(ValueError, match=r"CMA-ES needs at least 30 generations of at least 4 candidates: 120 "
+                                         r"rollouts \(9000 simulated steps for LatteArtStir, small\); the budget "
+                                         r"holds 8"):
+        optim.optimise(task, "cma-es", budget=8 * task.horizon, min_generations=30)
+
+
+def test_a_run_that_stops_rising_has_flattened():
+    flat = [[s, 1.0 + 1.0 / s, 0.0] for s in range(10, 110, 10)]  # 1 % of change only in the early part
+    assert benchmark.flattened(flat) is True
+    falling = [[s, 2.0 - s / 100.0, 0.0] for s in range(10, 110, 10)]
+    assert benchmark.flattened(falling) is False
+    assert benchmark.flattened(flat[:2]) is None
+
+
+def test_runs_file_survives_a_line_cut_short(tmp_path):
+    path = tmp_path / "runs.jsonl"
+    path.write_text(json.dumps({"key": "a", "final_loss": 1.0}) + "\n" + '{"key": "b", "fin')
+    assert [r["key"] for r in benchmark.load_runs(path)] == ["a"]
+
+
+def test_sweep_on_local_ray_resumes_without_repeating_a_run(tmp_path):
+    """A CMA-ES seed as a Ray job, then the same sweep with a second seed: only the second runs. Every record has
+    its curve on the reference physics, its trajectory and its reward constants; the table and plot are written."""
+    ray = pytest.importorskip("ray")
+    # one Ray session for both sweeps: the second finds a worker that has compiled the task's kernels
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        _sweep_twice(tmp_path)
+    finally:
+        ray.shutdown()
+
+
+def _sweep_twice(tmp_path):
+    logs = []
+    kw = dict(tasks_=["LatteArtStir"], methods=["cma-es"], rollouts=8, size="small", out=tmp_path, jobs=2,
+              min_generations=2, checkpoints=4, log=logs.append, use_ray=True)
+    first = benchmark.sweep(seeds=[0], **kw)
+    assert any("0 already in" in line and "1 to run" in line for line in logs)
+    assert [r["seed"] for r in first] == [0] and all("final_loss" in r for r in first)
+    for r in first:
+        assert r["steps_used"] == 8 * 75 and r["settings"]["popsize"] == 4 and r["settings"]["generations"] == 2
+        steps = [c[0] for c in r["curve"]]
+        assert steps == [300, 600]  # checkpoints every 150 steps, reached at the end of each 300-step generation
+        assert np.isclose(min(c[1] for c in r["curve"]), r["final_loss"], rtol=1e-6)
+        assert (tmp_path / "trajectories" / "LatteArtStir").exists() and r["trajectory"].endswith(".json")
+        assert r["reward_c2"] > 0
+    logs.clear()
+    again = benchmark.sweep(seeds=[0, 1], **kw)
+    assert any("1 already in" in line and "1 to run" in line for line in logs)
+    lines = (tmp_path / "runs.jsonl").read_text().splitlines()
+    assert len(lines) == 2 and sorted(r["seed"] for r in again) == [0, 1]
+    assert again[0] == first[0]  # the finished run is read back, not repeated
+    table = (tmp_path / "table.txt").read_text()
+    assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table
+    assert (tmp_path / "curves_LatteArtStir.png").stat().st_size > 10_000
