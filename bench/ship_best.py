@@ -1,7 +1,8 @@
-"""Copy the best run of each task from a bench_tasks output folder into trajectories/<task>/, with its report
-and a video of its episode (rendered on the reference physics).
+"""Copy the best run of each task from a benchmark folder (its runs.jsonl: `python -m fluidlab_core.benchmark`
+or bench/bench_tasks.py) into trajectories/<task>/, with its report and a video of its episode (rendered on
+the reference physics).
 
-    python bench/ship_best.py out/bench_tasks [--dest trajectories]
+    python bench/ship_best.py bench/results/benchmark_small [--dest trajectories]
 """
 from __future__ import annotations
 

@@ -57,6 +57,7 @@ def run_job(spec: dict) -> dict:
     try:
         import fluidlab_core
         from fluidlab_core import optim, tasks
+        from fluidlab_core.files import write_atomic
         from fluidlab_core.trajectory_store import TrajectoryStore
 
         fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
@@ -91,13 +92,16 @@ def run_job(spec: dict) -> dict:
         store = TrajectoryStore(Path(spec["out"]) / "trajectories")
         name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
         path = traj.save(store.new_path(task.name, name, overwrite=True))
-        return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
+        record = {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
                 "final_loss": final, "return": float(traj.metadata["return"]),
                 "steps_used": int(traj.metadata["steps_used"]), "iterations": int(traj.metadata["iterations"]),
                 "settings": traj.metadata.get("settings", {}), "curve": curve, "wall": round(wall, 2),
                 "eval_seconds": round(spent["eval"], 2), "horizon": task.horizon,
                 "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
                 "host": os.uname().nodename, "trajectory": str(path)}
+        # beside the trajectory, as `fluidlab optimise` writes it (bench/ship_best.py copies both)
+        write_atomic(path.with_name(path.stem + ".report.json"), json.dumps(record, indent=1).encode())
+        return record
     except Exception as err:  # noqa: BLE001 - one failed run must not end the sweep; the record says why
         return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
                 "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:],
@@ -154,7 +158,9 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
         lines.append("'flat': seeds whose best loss improved < 1 % over the last 20 % of the budget. "
                      "'loss @ equal wall': each method's best loss by the wall time of the task's fastest method "
                      "('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
-                     "the kernels (the first runs of a sweep compile; later ones load Taichi's cache).")
+                     "the kernels (the first runs of a sweep compile; later ones load Taichi's cache). 'ms/step': "
+                     "wall time per simulated step of the budget, the optimiser's cost beside the physics (DP's "
+                     "includes its backward pass).")
     for task in dict.fromkeys(r["task"] for r in runs):
         tr = [r for r in ok if r["task"] == task]
         if tr:
@@ -162,7 +168,7 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
             lines.append(f"{task}: horizon {tr[0]['horizon']} steps, reward r = {tr[0]['reward_c1']:g} − "
                          f"{tr[0]['reward_c2']:g} ℓ per step")
             lines.append(f"  {'method':<8} {'final loss':>24} {'return':>20} {'n':>2} {'flat':>5} {'wall s':>8} "
-                         f"{'loss @ equal wall':>18}")
+                         f"{'ms/step':>8} {'loss @ equal wall':>18}")
         methods = list(dict.fromkeys(r["method"] for r in runs if r["task"] == task))
         walls = {m: np.mean([r["wall"] for r in tr if r["method"] == m]) for m in methods
                  if any(r["method"] == m for r in tr)}
@@ -180,7 +186,8 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
             reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
             at_equal = f"{np.mean(reached):.4e}" if len(reached) == len(mr) else "not reached"
             lines.append(f"  {m:<8} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
-                         f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} {at_equal:>18}"
+                         f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} "
+                         f"{1e3 * np.mean([r['wall'] / r['steps_used'] for r in mr]):>8.1f} {at_equal:>18}"
                          + (f"  ({len(failed)} failed)" if failed else ""))
     for r in refused or []:
         lines.append(f"refused: {r['task']} {r['method']}: {r['why']}")
@@ -299,7 +306,8 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
         log(f"refused: {r['task']} {r['method']}: {r['why']}")
     previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
     todo = [s for s in specs if run_key(s) not in previous]
-    todo.sort(key=lambda s: s["method"] == "cma-es")  # gradient runs first: they take longest
+    # task by task (an interrupted sweep has whole tasks), gradient runs first within a task: they take longest
+    todo.sort(key=lambda s: (tasks_.index(s["task"]), s["method"] == "cma-es"))
     log(f"{len(specs)} runs in the sweep, {len(specs) - len(todo)} already in {runs_path}, {len(todo)} to run "
         f"({'Ray at ' + ray_address if ray_address else ('local Ray' if use_ray else 'process pool')}, {jobs} at a "
         f"time, {threads} Taichi thread(s) each)")
@@ -359,7 +367,8 @@ def main(argv=None) -> int:
               args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
               args.checkpoints, args.arch)
     except (ValueError, KeyError) as err:
-        print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
+        text = err.args[0] if isinstance(err, KeyError) and err.args and isinstance(err.args[0], str) else err
+        print(f"fluidlab benchmark: error: {text}", file=sys.stderr)
         return 2
     return 0
 

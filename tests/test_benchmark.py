@@ -1,6 +1,7 @@
 """The optimiser benchmark (fluidlab_core/benchmark.py): a tiny sweep on a local Ray, resumed; CMA-ES budgets that
 cannot hold its generations are refused; the flattening criterion."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,6 +63,8 @@ def _sweep_twice(tmp_path):
         assert np.isclose(min(c[1] for c in r["curve"]), r["final_loss"], rtol=1e-6)
         assert (tmp_path / "trajectories" / "LatteArtStir").exists() and r["trajectory"].endswith(".json")
         assert r["reward_c2"] > 0
+        report = json.loads(Path(r["trajectory"]).with_name(Path(r["trajectory"]).stem + ".report.json").read_text())
+        assert report["final_loss"] == r["final_loss"]  # beside the trajectory, for bench/ship_best.py
     logs.clear()
     again = benchmark.sweep(seeds=[0, 1], **kw)
     assert any("1 already in" in line and "1 to run" in line for line in logs)
@@ -71,3 +74,11 @@ def _sweep_twice(tmp_path):
     table = (tmp_path / "table.txt").read_text()
     assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table
     assert (tmp_path / "curves_LatteArtStir.png").stat().st_size > 10_000
+
+
+def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
+    from fluidlab_core import cli
+
+    assert cli.main(["benchmark", "--tasks", "Nope", "--out", "unused"]) == 2
+    err = capsys.readouterr().err
+    assert "fluidlab benchmark: error: unknown task 'Nope'; known tasks: LatteArtStir" in err
