@@ -26,7 +26,8 @@ def main():
     runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
     best = {}
     for r in runs:
-        if "final_loss" in r and (r["task"] not in best or r["final_loss"] < best[r["task"]]["final_loss"]):
+        if "final_loss" in r and "trajectory" in r and (r["task"] not in best
+                                                         or r["final_loss"] < best[r["task"]]["final_loss"]):
             best[r["task"]] = r
     fluidlab_core.init(arch=args.arch, precision="f32")
     for task, r in sorted(best.items()):

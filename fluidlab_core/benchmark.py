@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+STILL = "still"  # not an optimiser: the tool kept still (zero twists), the loss every method should beat
 FLAT_WINDOW = 0.2  # the last share of the budget a flattened curve improves by less than FLAT_TOLERANCE
 FLAT_TOLERANCE = 0.01
 
@@ -63,6 +64,16 @@ def run_job(spec: dict) -> dict:
         fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
         task = tasks.make(spec["task"], size=spec["size"])
         budget = int(spec["budget"])
+        if spec["method"] == STILL:  # the reference row: the tool kept still, one rollout
+            t0 = time.perf_counter()
+            out = task.evaluate(np.zeros((task.horizon, task.n_actions)))
+            wall = time.perf_counter() - t0
+            return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
+                    "final_loss": float(out["loss"]), "return": float(out["return"]), "steps_used": task.horizon,
+                    "iterations": 0, "settings": {}, "curve": [[task.horizon, float(out["loss"]), round(wall, 3)]],
+                    "wall": round(wall, 2), "eval_seconds": 0.0, "horizon": task.horizon,
+                    "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
+                    "host": os.uname().nodename}
         marks = [int(round(budget * (i + 1) / spec["checkpoints"])) for i in range(spec["checkpoints"])]
         ref = task.simulator(grad=False, contact="hard")
         curve, spent = [], {"eval": 0.0}
@@ -152,9 +163,8 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
     ok = [r for r in runs if "final_loss" in r]
     lines = []
     if ok:
-        size, budget = ok[0]["size"], ok[0]["budget"]
         lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
-                     f"size {size}, budget {budget} simulated steps per run. Lower loss, higher return is better.")
+                     f"size {ok[0]['size']}, the budget per run under each task. Lower loss, higher return is better.")
         lines.append("'flat': seeds whose best loss improved < 1 % over the last 20 % of the budget. "
                      "'loss @ equal wall': each method's best loss by the wall time of the task's fastest method "
                      "('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
@@ -165,13 +175,14 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
         tr = [r for r in ok if r["task"] == task]
         if tr:
             lines.append("")
-            lines.append(f"{task}: horizon {tr[0]['horizon']} steps, reward r = {tr[0]['reward_c1']:g} − "
+            lines.append(f"{task}: horizon {tr[0]['horizon']} steps, budget {tr[0]['budget']} steps "
+                         f"({tr[0]['budget'] // tr[0]['horizon']} rollouts), reward r = {tr[0]['reward_c1']:g} − "
                          f"{tr[0]['reward_c2']:g} ℓ per step")
             lines.append(f"  {'method':<8} {'final loss':>24} {'return':>20} {'n':>2} {'flat':>5} {'wall s':>8} "
                          f"{'ms/step':>8} {'loss @ equal wall':>18}")
         methods = list(dict.fromkeys(r["method"] for r in runs if r["task"] == task))
         walls = {m: np.mean([r["wall"] for r in tr if r["method"] == m]) for m in methods
-                 if any(r["method"] == m for r in tr)}
+                 if m != STILL and any(r["method"] == m for r in tr)}
         t_equal = min(walls.values()) if walls else float("nan")
         for m in methods:
             mr = [r for r in tr if r["method"] == m]
@@ -182,6 +193,10 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
                 continue
             f = np.array([r["final_loss"] for r in mr])
             ret = np.array([r["return"] for r in mr])
+            if m == STILL:
+                lines.append(f"  {'still':<8} {f.mean():>12.4e} {'':<11} {ret.mean():>9.3f} {'':<10} "
+                             f"(the tool kept still: the loss to beat)")
+                continue
             flat = [flattened(r["curve"]) for r in mr]
             reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
             at_equal = f"{np.mean(reached):.4e}" if len(reached) == len(mr) else "not reached"
@@ -208,6 +223,10 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
         for m in dict.fromkeys(r["method"] for r in ok if r["task"] == task):
             mr = [r for r in ok if r["task"] == task and r["method"] == m]
+            if m == STILL:
+                for ax in axes:
+                    ax.axhline(mr[0]["final_loss"], color="grey", linestyle="--", label="tool kept still")
+                continue
             for ax, axis, label in ((axes[0], 0, "simulated steps"), (axes[1], 2, "wall time (s)")):
                 top = max(r["curve"][-1][axis] for r in mr)
                 grid = np.linspace(0, top, 60)[1:]
@@ -266,7 +285,7 @@ def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
 def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int, size: str, out: Path,
           jobs: int | None = None, threads: int | None = None, ray_address: str | None = None,
           use_ray: bool | None = None, min_generations: int = 30, checkpoints: int = 10, arch: str = "cpu",
-          log=print) -> list[dict]:
+          log=print, baseline: bool = True) -> list[dict]:
     """Run what is not yet in OUT/runs.jsonl, append each run as it finishes, then write the table and plots.
     Returns every record of the sweep (finished before or now)."""
     from fluidlab_core import optim, tasks
@@ -291,6 +310,9 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     for name in tasks_:
         task = tasks.make(name, size=size)  # refuses an unknown task or size by name
         budget = int(rollouts) * task.horizon
+        if baseline:
+            specs.append({"task": name, "method": STILL, "seed": 0, "size": size, "budget": budget, "arch": arch,
+                          "threads": threads, "out": str(out.resolve())})
         for m in methods:
             if m == "cma-es":
                 try:
@@ -307,7 +329,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
     todo = [s for s in specs if run_key(s) not in previous]
     # task by task (an interrupted sweep has whole tasks), gradient runs first within a task: they take longest
-    todo.sort(key=lambda s: (tasks_.index(s["task"]), s["method"] == "cma-es"))
+    todo.sort(key=lambda s: (tasks_.index(s["task"]), s["method"] in ("cma-es", STILL)))
     log(f"{len(specs)} runs in the sweep, {len(specs) - len(todo)} already in {runs_path}, {len(todo)} to run "
         f"({'Ray at ' + ray_address if ray_address else ('local Ray' if use_ray else 'process pool')}, {jobs} at a "
         f"time, {threads} Taichi thread(s) each)")

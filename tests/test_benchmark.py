@@ -54,8 +54,11 @@ def _sweep_twice(tmp_path):
     kw = dict(tasks_=["LatteArtStir"], methods=["cma-es"], rollouts=8, size="small", out=tmp_path, jobs=2,
               min_generations=2, checkpoints=4, log=logs.append, use_ray=True)
     first = benchmark.sweep(seeds=[0], **kw)
-    assert any("0 already in" in line and "1 to run" in line for line in logs)
-    assert [r["seed"] for r in first] == [0] and all("final_loss" in r for r in first)
+    assert any("0 already in" in line and "2 to run" in line for line in logs)  # CMA-ES seed 0 and the still tool
+    assert sorted(r["method"] for r in first) == ["cma-es", "still"] and all("final_loss" in r for r in first)
+    still = next(r for r in first if r["method"] == "still")
+    first = [r for r in first if r["method"] == "cma-es"]
+    assert first[0]["final_loss"] < still["final_loss"]  # two generations already beat keeping the tool still
     for r in first:
         assert r["steps_used"] == 8 * 75 and r["settings"]["popsize"] == 4 and r["settings"]["generations"] == 2
         steps = [c[0] for c in r["curve"]]
@@ -67,12 +70,13 @@ def _sweep_twice(tmp_path):
         assert report["final_loss"] == r["final_loss"]  # beside the trajectory, for bench/ship_best.py
     logs.clear()
     again = benchmark.sweep(seeds=[0, 1], **kw)
-    assert any("1 already in" in line and "1 to run" in line for line in logs)
+    assert any("2 already in" in line and "1 to run" in line for line in logs)
     lines = (tmp_path / "runs.jsonl").read_text().splitlines()
-    assert len(lines) == 2 and sorted(r["seed"] for r in again) == [0, 1]
-    assert again[0] == first[0]  # the finished run is read back, not repeated
+    cma = [r for r in again if r["method"] == "cma-es"]
+    assert len(lines) == 3 and sorted(r["seed"] for r in cma) == [0, 1]
+    assert first[0] in cma  # the finished run is read back, not repeated
     table = (tmp_path / "table.txt").read_text()
-    assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table
+    assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table and "the tool kept still" in table
     assert (tmp_path / "curves_LatteArtStir.png").stat().st_size > 10_000
 
 

@@ -113,6 +113,15 @@ def test_documented_command(item, sim_node_parameters):
     prog = cmd[0]
     if prog in SETUP or (prog == "python3" and cmd[1:3] == ["-m", "venv"]):
         return  # set-up commands: .ci/run runs the README's (test above); the others need a ROS machine
+    if (prog == "fluidlab" and cmd[1:2] == ["benchmark"]) or (prog in ("python", "python3") and
+                                                           cmd[1:3] == ["-m", "fluidlab_core.benchmark"]):
+        from fluidlab_core import benchmark  # its own parser (fluidlab_core/cli.py hands it the options)
+
+        try:
+            benchmark.build_parser().parse_args(cmd[2:] if prog == "fluidlab" else cmd[3:])
+        except SystemExit:
+            pytest.fail(f"{where}: the benchmark refuses these arguments")
+        return
     if prog == "fluidlab":
         from fluidlab_core.cli import build_parser
 

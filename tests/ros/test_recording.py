@@ -29,7 +29,7 @@ from fluidlab_msgs.action import Execute, Replay  # noqa: E402
 import fluidlab_core  # noqa: E402
 from fluidlab_ros.recording import FLUSH_PERIOD, RecordingError, read_recording, recover  # noqa: E402
 
-LATTE = "LatteArtStir_dp_seed1_small"  # well optimised: a disturbance can only make it worse
+LATTE = "LatteArtStir_dp_seed0_small"  # well optimised: a disturbance can only make it worse
 
 
 def independent_read(folder: Path):
