@@ -32,6 +32,8 @@ def main():
     fluidlab_core.init(arch=args.arch, precision="f32")
     for task, r in sorted(best.items()):
         src = Path(r["trajectory"])
+        if not src.is_absolute():  # the benchmark's records name it relative to their folder
+            src = Path(args.bench_out) / src
         dest = Path(args.dest) / task
         dest.mkdir(parents=True, exist_ok=True)
         # shipped names carry the task: sim_node's trajectory names (file stems) are unique across the folder

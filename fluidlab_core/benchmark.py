@@ -109,7 +109,7 @@ def run_job(spec: dict) -> dict:
                 "settings": traj.metadata.get("settings", {}), "curve": curve, "wall": round(wall, 2),
                 "eval_seconds": round(spent["eval"], 2), "horizon": task.horizon,
                 "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
-                "host": os.uname().nodename, "trajectory": str(path)}
+                "host": os.uname().nodename, "trajectory": str(path.relative_to(Path(spec["out"])))}
         # beside the trajectory, as `fluidlab optimise` writes it (bench/ship_best.py copies both)
         write_atomic(path.with_name(path.stem + ".report.json"), json.dumps(record, indent=1).encode())
         return record
