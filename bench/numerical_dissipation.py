@@ -31,41 +31,18 @@ import numpy as np
 
 
 def vortex_decay(res: int, duration: float, eta: float = 0.0, bulk_factor: float = 1.0, substep_factor: float = 1.0,
-                 size: float = 0.1, amplitude: float = 0.1, every: int = 5):
-    """(decay rate 1/s, substeps per 1 ms step, k) of the cellular vortex in a slab two cells thick."""
-    import fluidlab_core as fl
+                 every: int = 5):
+    """(decay rate 1/s, substeps per 1 ms step, k) of the cellular vortex (fluidlab_core/apps/vortex.py) in water of
+    viscosity eta (Pa·s) and bulk modulus × bulk_factor, at the stable substeps × substep_factor."""
     from fluidlab_core import materials as M
+    from fluidlab_core.apps import vortex
 
-    dx = size / res
-    scene = fl.Scene(lower=(0, 0, 0), upper=(size, 2 * dx, size), grid_res=res, dt=1e-3, substeps=1,
-                     gravity=(0.0, 0.0, 0.0), max_speed=amplitude)
     bulk = M.WATER.bulk_modulus * bulk_factor
     liquid = (M.ViscousLiquid(f"viscous_{eta:g}", density=1000.0, bulk_modulus=bulk, viscosity_pas=eta) if eta > 0
               else M.NewtonianLiquid("water_inviscid", density=1000.0, bulk_modulus=bulk))
-    scene.add_particles(fl.Box((0, 0, 0), (size, 2 * dx, size)), liquid, name="liquid")
-    scene.substeps = max(1, int(round(scene.stable_substeps() * substep_factor)))
-    sim = scene.build()
-    k = math.pi / size
-
-    def mode(x):
-        sx, cx, sz, cz = np.sin(k * x[:, 0]), np.cos(k * x[:, 0]), np.sin(k * x[:, 2]), np.cos(k * x[:, 2])
-        return np.stack([sx * cz, np.zeros_like(sx), -cx * sz], axis=1), (sx, cx, sz, cz)
-
-    state = sim.get_state()
-    shape, (sx, cx, sz, cz) = mode(state.x.astype(np.float64))
-    state.v[:] = amplitude * shape
-    grad = np.zeros((len(sx), 3, 3))  # APIC affine velocity C = ∇v
-    grad[:, 0, 0], grad[:, 0, 2] = amplitude * k * cx * cz, -amplitude * k * sx * sz
-    grad[:, 2, 0], grad[:, 2, 2] = amplitude * k * sx * sz, -amplitude * k * cx * cz
-    state.C[:] = grad
-    sim.set_state(state)
-    times, amps = [], []
-    while sim.time <= duration + 1e-12:
-        shape, _ = mode(sim.positions("liquid"))
-        times.append(sim.time)
-        amps.append(float((sim.velocities("liquid") * shape).sum() / (shape * shape).sum()))
-        sim.step(n=every)
-    return -np.polyfit(times, np.log(amps), 1)[0], scene.substeps, k
+    rate, k, substeps = vortex.decay_rate(liquid, res=res, duration=duration, every=every,
+                                          substep_factor=substep_factor)
+    return rate, substeps, k
 
 
 def cube_rise(res: int, seconds: float = 0.15):
