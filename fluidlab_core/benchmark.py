@@ -49,6 +49,16 @@ def run_key(spec: dict) -> str:
     return f"{spec['task']}|{spec['method']}|{spec['seed']}|{spec['size']}|{spec['budget']}"
 
 
+def _record(spec: dict, task=None, **fields) -> dict:
+    """A run's record: its identity, where it ran, the task's constants when built, then `fields`."""
+    rec = {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
+           "host": os.uname().nodename}
+    if task is not None:
+        rec.update(horizon=task.horizon, reward_c1=task.reward_c1, reward_c2=task.reward_c2,
+                   threads=spec.get("threads"))
+    return {**rec, **fields}
+
+
 def run_job(spec: dict) -> dict:
     """One run (in a worker process): optimise, evaluate the best so far at the checkpoints, save the trajectory.
     Returns the run's record; an error becomes a record with 'error' (the sweep goes on)."""
@@ -68,12 +78,10 @@ def run_job(spec: dict) -> dict:
             t0 = time.perf_counter()
             out = task.evaluate(np.zeros((task.horizon, task.n_actions)))
             wall = time.perf_counter() - t0
-            return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
-                    "final_loss": float(out["loss"]), "return": float(out["return"]), "steps_used": task.horizon,
-                    "iterations": 0, "settings": {}, "curve": [[task.horizon, float(out["loss"]), round(wall, 3)]],
-                    "wall": round(wall, 2), "eval_seconds": 0.0, "horizon": task.horizon,
-                    "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
-                    "host": os.uname().nodename}
+            loss = float(out["loss"])
+            return _record(spec, task, final_loss=loss, steps_used=task.horizon, iterations=0, settings={},
+                           curve=[[task.horizon, loss, round(wall, 3)]], wall=round(wall, 2), eval_seconds=0.0,
+                           **{"return": float(out["return"])})
         marks = [int(round(budget * (i + 1) / spec["checkpoints"])) for i in range(spec["checkpoints"])]
         ref = task.simulator(grad=False, contact="hard")
         curve, spent = [], {"eval": 0.0}
@@ -103,20 +111,17 @@ def run_job(spec: dict) -> dict:
         store = TrajectoryStore(Path(spec["out"]) / "trajectories")
         name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
         path = traj.save(store.new_path(task.name, name, overwrite=True))
-        record = {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
-                "final_loss": final, "return": float(traj.metadata["return"]),
-                "steps_used": int(traj.metadata["steps_used"]), "iterations": int(traj.metadata["iterations"]),
-                "settings": traj.metadata.get("settings", {}), "curve": curve, "wall": round(wall, 2),
-                "eval_seconds": round(spent["eval"], 2), "horizon": task.horizon,
-                "reward_c1": task.reward_c1, "reward_c2": task.reward_c2, "threads": spec.get("threads"),
-                "host": os.uname().nodename, "trajectory": str(path.relative_to(Path(spec["out"])))}
+        record = _record(spec, task, final_loss=final, steps_used=int(traj.metadata["steps_used"]),
+                         iterations=int(traj.metadata["iterations"]), settings=traj.metadata.get("settings", {}),
+                         curve=curve, wall=round(wall, 2), eval_seconds=round(spent["eval"], 2),
+                         trajectory=str(path.relative_to(Path(spec["out"]))),
+                         **{"return": float(traj.metadata["return"])})
         # beside the trajectory, as `fluidlab optimise` writes it (bench/ship_best.py copies both)
         write_atomic(path.with_name(path.stem + ".report.json"), json.dumps(record, indent=1).encode())
         return record
     except Exception as err:  # noqa: BLE001 - one failed run must not end the sweep; the record says why
-        return {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
-                "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:],
-                "wall": round(time.perf_counter() - t_start, 2), "host": os.uname().nodename}
+        return _record(spec, error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc()[-3000:],
+                       wall=round(time.perf_counter() - t_start, 2))
 
 
 def load_runs(path: Path) -> list[dict]:
@@ -316,7 +321,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
         for m in methods:
             if m == "cma-es":
                 try:
-                    cmaes.population_for(task, budget, min_generations, optim.cmaes_size(task))
+                    cmaes.population_for(task, budget, min_generations)
                 except ValueError as err:
                     refused.append({"task": name, "method": m, "why": str(err)})
                     continue

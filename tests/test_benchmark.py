@@ -11,11 +11,10 @@ from fluidlab_core.optim import cmaes
 
 def test_cma_es_population_fits_the_generations_or_the_budget_is_refused():
     task = tasks.make("LatteArtStir", "small")
-    n = optim.cmaes_size(task)
-    default = cmaes.default_population(n)
+    default = cmaes.default_population(cmaes.search_size(task))
     # a generous budget keeps the package's default population; a smaller one shrinks it to fit 30 generations
-    assert cmaes.population_for(task, 30 * default * task.horizon, 30, n) == default
-    assert cmaes.population_for(task, 150 * task.horizon, 30, n) == 5
+    assert cmaes.population_for(task, 30 * default * task.horizon, 30) == default
+    assert cmaes.population_for(task, 150 * task.horizon, 30) == 5
     with pytest.raises(ValueError, match=r"CMA-ES needs at least 30 generations of at least 4 candidates: 120 "
                                          r"rollouts \(9000 simulated steps for LatteArtStir, small\); the budget "
                                          r"holds 8"):

@@ -39,13 +39,6 @@ def check_request(task, method: str, budget, seed):
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
 
 
-def cmaes_size(task) -> int:
-    """The number of parameters CMA-ES searches for `task` (optim/cmaes.py's parametrisation)."""
-    from fluidlab_core.optim import params as P
-
-    return P.knots(task, 8).size
-
-
 TECHNIQUES = ("soft_contact", "expanding_region", "attraction", "gradient_sharing")  # DP's, each switchable
 
 
@@ -68,8 +61,6 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
     if without and method != "dp":
         raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
     if method == "cma-es":
-        if min_generations:
-            cmaes.population_for(task, int(budget), int(min_generations), cmaes_size(task))
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
                            min_generations=min_generations)
     else:

@@ -29,11 +29,16 @@ def default_population(n: int) -> int:
     return 4 + int(3 * np.log(n))
 
 
-def population_for(task, budget: int, min_generations: int, n: int) -> int:
+def search_size(task, n_knots: int = 8) -> int:
+    """The number of parameters CMA-ES searches for `task` (the knots parametrisation above)."""
+    return P.knots(task, n_knots).size
+
+
+def population_for(task, budget: int, min_generations: int, n_knots: int = 8) -> int:
     """The largest population (≤ the default, ≥ MIN_POPULATION) whose `min_generations` generations fit in the
     budget; ValueError with the figures when none does."""
     rollouts = int(budget) // task.horizon
-    pop = min(default_population(n), rollouts // max(1, int(min_generations)))
+    pop = min(default_population(search_size(task, n_knots)), rollouts // max(1, int(min_generations)))
     if pop < MIN_POPULATION:
         need = MIN_POPULATION * int(min_generations)
         raise ValueError(f"CMA-ES needs at least {min_generations} generations of at least {MIN_POPULATION} "
@@ -60,7 +65,7 @@ def run(task, budget: int, seed: int, callback=None, n_knots: int = 8, sigma0: f
     u0 = 2.0 * (par.clip(np.zeros(par.size)) - lo) / span - 1.0
     opts = {"bounds": [-1.0, 1.0], "seed": int(seed) + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
     if min_generations:
-        opts["popsize"] = population_for(task, budget, min_generations, par.size)
+        opts["popsize"] = population_for(task, budget, min_generations, n_knots)
     es = cma.CMAEvolutionStrategy(u0, sigma0, opts)
     sim = task.simulator(grad=False, contact="hard")
     history, steps_used, iteration, generations = [], 0, 0, 0
