@@ -37,7 +37,12 @@ COLCON = ["colcon-core==0.21.3", "colcon-ros==0.5.0", "colcon-python-setup-py==0
           "colcon-package-information==0.4.1"]
 # ray: the optimiser benchmark's job scheduler (fluidlab_core/benchmark.py; without it runs go to a process pool).
 BENCH = ["ray==2.60.0"]
-TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0", *COLCON, *BENCH]
+# rl: the benchmark's SAC and PPO baselines (fluidlab_core/optim/rl.py). torch 2.13.0 is pinned to its CPU build
+# (about 750 MB installed; `pip install torch==2.13.0` takes the CPU wheel where one is on disk). torch needs
+# setuptools >= 77.0.3 and colcon-core < 80: 79.0.1 satisfies both.
+RL = ["torch==2.13.0", "stable-baselines3==2.9.2", "setuptools==79.0.1"]
+TEST_REQUIRES = ["pytest==9.2.0", "pytest-xdist==3.8.0", "example-robot-data==6.0.0", "mcap==1.6.0", *COLCON, *BENCH,
+                 *RL]
 
 setup(
     name=PACKAGE,
@@ -51,7 +56,7 @@ setup(
                   "fluidlab_core.tasks": ["data/*.npz"]},
     python_requires=">=3.11",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": TEST_REQUIRES, "bench": BENCH},
+    extras_require={"test": TEST_REQUIRES, "bench": [*BENCH, *RL], "rl": RL},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

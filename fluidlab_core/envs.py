@@ -67,6 +67,10 @@ class FluidLabEnv(gym.Env):
     the goal pattern of the step (c1 = 1, c2 = 2e5); Mixing: minus the sugar's spread (c1 = 0, c2 = 1e4);
     Gathering: mean squared distance of the objects to their goals (c1 = 1, c2 = 500).
 
+    `info` after each step: "step_loss" (ℓ_k), "task_loss" (this step's share of the task's loss, the loss the
+    optimisers minimise: summed over an episode it is that episode's task loss), "clipped" (the tool met its
+    workspace bound) and "time" (s).
+
     ## Starting State
     The task's documented start state (fluids at rest, tool at its start pose); it is deterministic, so `seed`
     only seeds `self.np_random` for the user's benefit. `options={"tool_position": (x, y, z)}` moves the tool's
@@ -77,7 +81,8 @@ class FluidLabEnv(gym.Env):
     Gathering; paper: 150 and 250).
 
     ## Arguments
-    `gym.make("FluidLab/<Task>-v0", size="small" | "paper", render_mode=None | "rgb_array")`. The Taichi backend
+    `gym.make("FluidLab/<Task>-v0", size="small" | "paper", render_mode=None | "rgb_array")`; `task=` an already
+    made Task of that name and size, to share it. The Taichi backend
     is that of `fluidlab_core.init` (CPU and float32 by default).
 
     ## Version History
@@ -86,12 +91,15 @@ class FluidLabEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
 
-    def __init__(self, task_name: str, size: str = "small", render_mode: str | None = None):
+    def __init__(self, task_name: str, size: str = "small", render_mode: str | None = None, task=None):
         from fluidlab_core import tasks
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.task = tasks.make(task_name, size=size)
+        if task is not None and (task.name, task.size) != (task_name, size):
+            raise ValueError(f"task is {task.name} ({task.size}), but the environment was asked for {task_name} "
+                             f"({size})")
+        self.task = task if task is not None else tasks.make(task_name, size=size)
         self.render_mode = render_mode
         self.sim = self.task.simulator()
         v = np.float32(self.task.max_tool_speed)
@@ -99,6 +107,7 @@ class FluidLabEnv(gym.Env):
         n = self.task.observation_size()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float32)
         self._term = self.task.step_term()
+        self._task_loss = self.task.loss(self.task.horizon)
         self._tool = [spec.name for spec in self.sim.tool_specs].index(self.task.tool_name)
         self._twist = np.zeros(6)
         self._steps = 0
@@ -117,7 +126,8 @@ class FluidLabEnv(gym.Env):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action contains NaN or infinity: {action!r}")
         twist = self.task.twists(a[None])
-        res = self.sim.rollout(twist, self._term, step_offset=self._steps, horizon=self.task.horizon)
+        res = self.sim.rollout(twist, self._term, step_offset=self._steps, horizon=self.task.horizon,
+                               terms={"task_loss": self._task_loss})
         self._twist = twist[0]
         self._steps += 1
         step_loss = float(res.step_losses[0])
@@ -125,7 +135,8 @@ class FluidLabEnv(gym.Env):
         truncated = self._steps >= self.task.horizon
         obs = self.task.observe(self.sim, self._twist)
         return obs, float(reward), False, truncated, {"clipped": bool(res.clipped[0, self._tool]),
-                                                    "step_loss": step_loss, "time": self.sim.time}
+                                                    "step_loss": step_loss, "time": self.sim.time,
+                                                    "task_loss": float(res.terms["task_loss"][0])}
 
     def render(self):
         if self.render_mode == "rgb_array":

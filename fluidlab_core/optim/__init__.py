@@ -1,8 +1,9 @@
 """Trajectory optimisers: `optimise(task, method, budget, seed, callback)` returns a Trajectory.
 
 Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction, gradient sharing
-within fluid bodies; optim/dp.py),
-"dp-h" (the same loop without them) and "cma-es" (optim/cmaes.py). Every method
+within fluid bodies; optim/dp.py), "dp-h" (the same loop without them), "cma-es" (optim/cmaes.py), and the
+model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py, the `rl`
+extra). Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
   floating-point sums in multithreaded CPU kernels),
@@ -17,13 +18,15 @@ import numpy as np
 
 from fluidlab_core.optim.progress import Progress, Result
 
-METHODS = ("dp", "dp-h", "cma-es")
+METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo")
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
           "sharing that ties untouched fluid to the fluid the tool moves (Pouring, Transporting)",
     "dp-h": "the same gradient descent on the hard-contact physics without those techniques (the paper's DP-H)",
     "cma-es": "CMA-ES (the cma package), gradient-free, one rollout per sample, no backward pass",
+    "sac": "Soft Actor-Critic (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
+    "ppo": "Proximal Policy Optimisation (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
 }
 
 
@@ -49,7 +52,7 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
     population is chosen so that the budget holds that many complete generations, and a budget that cannot is
     refused before anything runs (optim/cmaes.py)."""
     from fluidlab_core import tasks
-    from fluidlab_core.optim import cmaes, dp
+    from fluidlab_core.optim import cmaes, dp, rl
 
     if isinstance(task, str):
         task = tasks.make(task, size=size)
@@ -60,7 +63,9 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         raise ValueError(f"unknown DP technique(s) {', '.join(map(repr, unknown))}; techniques: {', '.join(TECHNIQUES)}")
     if without and method != "dp":
         raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
-    if method == "cma-es":
+    if method in rl.RL_METHODS:
+        result = rl.run(task, method, int(budget), int(seed), callback, max_iterations=max_iterations)
+    elif method == "cma-es":
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
                            min_generations=min_generations)
     else:
