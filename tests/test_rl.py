@@ -70,3 +70,28 @@ def test_missing_sb3_is_named(task, monkeypatch):
     monkeypatch.setitem(sys.modules, "stable_baselines3", None)
     with pytest.raises(ImportError, match=r"pip install"):
         rl.run(task, "sac", task.horizon, seed=0)
+
+
+def test_pods_steps_downhill_and_keeps_its_budget(task):
+    """PODS (optim/pods.py): its improved actions lower the task loss on the reference physics (the gradient's
+    sign and the step are right), a run spends two rollouts per iteration and never more than its budget, and
+    it returns its best episode."""
+    from fluidlab_core.optim import pods
+
+    seen = []
+    budget = 5 * task.horizon  # two iterations of two rollouts; the fifth rollout cannot hold a third
+    traj = optim.optimise(task, "pods", budget, seed=0, callback=lambda p: seen.append(p) and False)
+    assert [p.steps for p in seen] == [2 * task.horizon, 4 * task.horizon]
+    assert traj.metadata["steps_used"] == 4 * task.horizon
+    assert traj.metadata["final_loss"] == pytest.approx(min(p.loss for p in seen), rel=1e-5)
+    first = seen[0].parametrisation.actions(seen[0].best_theta)  # the first episode's actions
+    gsim = task.simulator(grad=True, contact="hard")
+    task.reset(gsim)
+    res = gsim.rollout(task.twists(first), task.loss(task.horizon), grad=True)
+    improved = pods.improve(first, res.grad_actions[:, 0, list(task.action_axes)], task.max_tool_speed)
+    before, after = task.evaluate(first)["loss"], task.evaluate(improved)["loss"]
+    print(f"\nPODS: first episode loss {before:.4e}, after the gradient step {after:.4e}")
+    assert after < before
+    assert np.all(np.abs(improved) <= task.max_tool_speed)
+    with pytest.raises(ValueError, match="two rollouts"):
+        optim.optimise(task, "pods", task.horizon, seed=0)

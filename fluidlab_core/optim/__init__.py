@@ -2,8 +2,9 @@
 
 Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction, gradient sharing
 within fluid bodies; optim/dp.py), "dp-h" (the same loop without them), "cma-es" (optim/cmaes.py), and the
-model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py, the `rl`
-extra). Every method
+model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py), and "pods"
+(a policy network improved with the simulator's gradients; optim/pods.py). The last three need the `rl` extra
+(torch). Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
   floating-point sums in multithreaded CPU kernels),
@@ -18,7 +19,7 @@ import numpy as np
 
 from fluidlab_core.optim.progress import Progress, Result
 
-METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo")
+METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
@@ -27,6 +28,8 @@ DESCRIPTIONS = {
     "cma-es": "CMA-ES (the cma package), gradient-free, one rollout per sample, no backward pass",
     "sac": "Soft Actor-Critic (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
     "ppo": "Proximal Policy Optimisation (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
+    "pods": "PODS (Mora et al. 2021): a policy network fitted to actions improved by the simulator's gradient, "
+            "two rollouts per iteration",
 }
 
 
@@ -52,7 +55,7 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
     population is chosen so that the budget holds that many complete generations, and a budget that cannot is
     refused before anything runs (optim/cmaes.py)."""
     from fluidlab_core import tasks
-    from fluidlab_core.optim import cmaes, dp, rl
+    from fluidlab_core.optim import cmaes, dp, pods, rl
 
     if isinstance(task, str):
         task = tasks.make(task, size=size)
@@ -63,7 +66,9 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         raise ValueError(f"unknown DP technique(s) {', '.join(map(repr, unknown))}; techniques: {', '.join(TECHNIQUES)}")
     if without and method != "dp":
         raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
-    if method in rl.RL_METHODS:
+    if method == "pods":
+        result = pods.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
+    elif method in rl.RL_METHODS:
         result = rl.run(task, method, int(budget), int(seed), callback, max_iterations=max_iterations)
     elif method == "cma-es":
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
