@@ -4,9 +4,10 @@ so that a gradient with respect to the actions maps back by the transpose.
     actions = reshape(A θ_a, (N, k)),   dL/dθ_a = Aᵀ vec(dL/d actions)
 
 - open loop: θ_a is the action sequence itself (A = I).
-- periodic (the paper's Gathering and Mixing policies): θ_a is a stroke of S steps; each period is the stroke
-  followed by R steps at the constant velocity −(Σ stroke)/R that returns the tool to where the stroke
-  started, repeated until the horizon (the last period is cut short).
+- periodic (the paper's Gathering policies; Mixing's too in the paper, open loop here: tasks/cup_tasks.py):
+  θ_a is a stroke of S steps; each period is the stroke followed by R steps at the constant velocity
+  −(Σ stroke)/R that returns the tool to where the stroke started, repeated until the horizon (the last period
+  is cut short).
 - knots (CMA-ES): θ_a holds K values per axis; actions are their piecewise-linear interpolation over the
   horizon (or over the stroke of a periodic policy), which keeps the search low-dimensional.
 
