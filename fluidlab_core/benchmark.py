@@ -1,12 +1,13 @@
 """The optimiser benchmark: tasks × methods × seeds at one budget, as independent jobs, resumable.
 
-    python -m fluidlab_core.benchmark [--tasks ...] [--methods dp dp-h cma-es] [--seeds 0 1 2]
+    python -m fluidlab_core.benchmark [--tasks ...] [--methods dp dp-h cma-es sac ppo pods] [--seeds 0 1 2]
         [--rollouts 150] [--size small] [--out bench/results/benchmark_small] [--jobs 2] [--ray-address ADDR]
     fluidlab benchmark ...            (the same)
 
-What a run is. One optimisation of one task by one method from one seed, with a budget of `--rollouts` ×
-the task's horizon simulated steps. It is the same for every method: a DP iteration over r steps counts r;
-its backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
+What a run is. One optimisation of one task by one method (optim.METHODS: sac, ppo and pods need the `rl`
+extra) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
+every method: a DP iteration over r steps counts r, an RL environment step 1, a PODS iteration 2 rollouts;
+DP's backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
 `--min-generations` generations (default 30). Its population is chosen to fit (optim/cmaes.py), and a budget
 that cannot hold them is refused before anything runs. Every run is judged on the task's reference
 physics (hard contact): its final loss and the reward return r = Σ_k (c1 − c2 ℓ_k), with c1, c2 per task

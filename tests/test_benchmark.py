@@ -84,3 +84,14 @@ def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
     assert cli.main(["benchmark", "--tasks", "Nope", "--out", "unused"]) == 2
     err = capsys.readouterr().err
     assert "fluidlab benchmark: error: unknown task 'Nope'; known tasks: LatteArtStir" in err
+    # an RL baseline goes through the same machinery: a Ray job, checkpoints on the reference physics, a trajectory
+    pytest.importorskip("stable_baselines3")
+    logs.clear()
+    ppo = [r for r in benchmark.sweep(seeds=[0], **{**kw, "methods": ["ppo"]}) if r["method"] == "ppo"]
+    assert any("1 to run" in line for line in logs), logs
+    assert len(ppo) == 1 and "final_loss" in ppo[0], ppo
+    r = ppo[0]
+    assert r["steps_used"] == 8 * 75 and r["iterations"] == 8  # eight episodes, the last the deterministic policy's
+    assert [c[0] for c in r["curve"]] == [150, 300, 450, 600]  # an episode ends on every checkpoint
+    assert np.isclose(min(c[1] for c in r["curve"]), r["final_loss"], rtol=1e-6)
+    assert (tmp_path / r["trajectory"]).is_file()
