@@ -76,14 +76,6 @@ def _sweep_twice(tmp_path):
     table = (tmp_path / "table.txt").read_text()
     assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table and "the tool kept still" in table
     assert (tmp_path / "curves_LatteArtStir.png").stat().st_size > 10_000
-
-
-def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
-    from fluidlab_core import cli
-
-    assert cli.main(["benchmark", "--tasks", "Nope", "--out", "unused"]) == 2
-    err = capsys.readouterr().err
-    assert "fluidlab benchmark: error: unknown task 'Nope'; known tasks: LatteArtStir" in err
     # an RL baseline goes through the same machinery: a Ray job, checkpoints on the reference physics, a trajectory
     pytest.importorskip("stable_baselines3")
     logs.clear()
@@ -95,3 +87,11 @@ def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
     assert [c[0] for c in r["curve"]] == [150, 300, 450, 600]  # an episode ends on every checkpoint
     assert np.isclose(min(c[1] for c in r["curve"]), r["final_loss"], rtol=1e-6)
     assert (tmp_path / r["trajectory"]).is_file()
+
+
+def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
+    from fluidlab_core import cli
+
+    assert cli.main(["benchmark", "--tasks", "Nope", "--out", "unused"]) == 2
+    err = capsys.readouterr().err
+    assert "fluidlab benchmark: error: unknown task 'Nope'; known tasks: LatteArtStir" in err
