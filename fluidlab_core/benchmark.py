@@ -365,6 +365,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
 
 def build_parser() -> argparse.ArgumentParser:
     from fluidlab_core.optim import METHODS
+    from fluidlab_core.tasks.base import SIZES
 
     ap = argparse.ArgumentParser(prog="fluidlab benchmark", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -373,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--rollouts", type=int, default=150, help="budget per run in rollouts of the task's horizon "
                     "(default 150: 30 CMA-ES generations of 5)")
-    ap.add_argument("--size", default="small", choices=["small", "paper"])
+    ap.add_argument("--size", default="small", choices=list(SIZES))
     ap.add_argument("--out", default=None, help="folder (default bench/results/benchmark_SIZE)")
     ap.add_argument("--jobs", type=int, default=None, help="runs at a time on a local Ray or pool (default: cores)")
     ap.add_argument("--threads", type=int, default=None, help="Taichi CPU threads per run (default cores/jobs)")

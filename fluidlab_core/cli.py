@@ -4,8 +4,8 @@
     fluidlab materials
     fluidlab bench [--particles N ...]
     fluidlab list
-    fluidlab optimise TASK [--method dp|dp-h|cma-es] [--budget STEPS] [--seed S] [--size small|paper]
-                           [--name NAME] [--root out/trajectories] [--force]
+    fluidlab optimise TASK [--method dp|dp-h|cma-es|sac|ppo|pods] [--budget STEPS] [--seed S]
+                           [--size small|medium|paper] [--name NAME] [--root out/trajectories] [--force]
     fluidlab evaluate TRAJECTORY.json
     fluidlab render TRAJECTORY.json [--out DIR] [--every N] [--no-mp4]
     fluidlab replay RECORDING [--out DIR] [--disturb delay=S,scale=F,noise=RAD] [--recover]   (from fluidlab_ros)
@@ -65,7 +65,7 @@ def _cmd_list(args):
 
     print(f"{'task':<15} {'size':<6} {'grid':>4} {'dt s':>7} {'horizon':>7} {'tool':<7} actions")
     for name in tasks.names():
-        for size in ("small", "paper"):
+        for size in tasks.SIZES:
             t = tasks.make(name, size)
             c = t.config
             print(f"{name:<15} {size:<6} {c.grid_res:>4} {c.dt:>7.4f} {c.horizon:>7} {t.tool_name:<7} "
@@ -222,6 +222,7 @@ def _register_plugins(sub):
 
 def build_parser() -> argparse.ArgumentParser:
     """The `fluidlab` argument parser, plug-in sub-commands included (tests parse documented commands with it)."""
+    from fluidlab_core.tasks.base import SIZES
     parser = argparse.ArgumentParser(prog="fluidlab", description="FluidLab-ROS: differentiable fluid simulation "
                                      "for robot trajectories")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -264,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--budget", type=int, default=None,
                    help="simulated steps; a rollout of the horizon costs the horizon (default 12 rollouts)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--size", default="small", choices=["small", "paper"])
+    p.add_argument("--size", default="small", choices=list(SIZES))
     p.add_argument("--name", default=None, help="trajectory name (default TASK_METHOD_seedS_SIZE); a name in use "
                    "anywhere under --root is refused (sim_node finds trajectories by name)")
     p.add_argument("--root", default=DEFAULT_ROOT,
@@ -278,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="loss and return of a trajectory on its task's reference physics")
     p.add_argument("trajectory", help="a trajectory JSON file")
-    p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
+    p.add_argument("--size", default=None, choices=list(SIZES), help="default: the size it records")
     _add_backend(p)
     p.set_defaults(func=_cmd_evaluate)
 
@@ -287,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/render", help="folder (default out/render)")
     p.add_argument("--every", type=int, default=2, help="steps between frames (default 2)")
     p.add_argument("--no-mp4", action="store_true", help="frames only")
-    p.add_argument("--size", default=None, choices=["small", "paper"], help="default: the size it records")
+    p.add_argument("--size", default=None, choices=list(SIZES), help="default: the size it records")
     _add_backend(p)
     p.set_defaults(func=_cmd_render)
 

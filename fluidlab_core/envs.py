@@ -81,7 +81,7 @@ class FluidLabEnv(gym.Env):
     Gathering; paper: 150 and 250).
 
     ## Arguments
-    `gym.make("FluidLab/<Task>-v0", size="small" | "paper", render_mode=None | "rgb_array")`; `task=` an already
+    `gym.make("FluidLab/<Task>-v0", size="small" | "medium" | "paper", render_mode=None | "rgb_array")`; `task=` an already
     made Task of that name and size, to share it. The Taichi backend
     is that of `fluidlab_core.init` (CPU and float32 by default).
 

@@ -48,7 +48,7 @@ def test_list_shows_every_task(capsys):
     assert cli.main(["list"]) == 0
     out = capsys.readouterr().out
     for name in ("LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard"):
-        assert out.count(name) == 2  # small and paper
+        assert out.count(name) == 3  # small, medium and paper
 
 
 def test_optimise_refuses_bad_requests_before_announcing_anything(capsys, tmp_path):

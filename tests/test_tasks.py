@@ -33,8 +33,26 @@ def test_registry_names_and_unknown():
     assert tasks.names() == TASKS
     with pytest.raises(KeyError, match="known tasks: LatteArtStir, Mixing, GatheringEasy, GatheringHard"):
         tasks.make("LatteArt")
-    with pytest.raises(ValueError, match="size must be one of small, paper"):
+    with pytest.raises(ValueError, match="size must be one of small, medium, paper"):
         tasks.make("Mixing", size="huge")
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_medium_size_lies_between_small_and_paper(name):
+    """'medium' (the benchmark's middle scale): a grid between small's and the paper's, the same episode in
+    seconds (so losses and rewards are comparable across sizes), and, for a task with a scripted goal, its goal
+    file for that size (without it the task cannot be built)."""
+    small, medium, paper = (tasks.make(name, s) for s in ("small", "medium", "paper"))
+    assert small.config.grid_res < medium.config.grid_res < paper.config.grid_res
+    assert small.config.dt >= medium.config.dt >= paper.config.dt
+    assert medium.horizon * medium.dt == pytest.approx(small.horizon * small.dt, rel=1e-9)
+    assert medium.horizon * medium.dt == pytest.approx(paper.horizon * paper.dt, rel=1e-9)
+    from fluidlab_core.tasks.base import PatternTask
+
+    if isinstance(medium, PatternTask):
+        goal = medium.goal()  # GoalFileError when the file for this size is missing
+        assert max(goal) <= medium.horizon and len(goal) >= medium.horizon // medium.goal_every
+        assert all(np.all(np.isfinite(p)) and len(p) > 0 for p in goal.values())
 
 
 def test_registry_loads_once_for_threads_that_ask_together():

@@ -29,7 +29,7 @@ import numpy as np
 from fluidlab_core import losses
 from fluidlab_core.trajectory import Trajectory
 
-SIZES = ("small", "paper")
+SIZES = ("small", "medium", "paper")  # medium: about 1.5x small's grid, the same episode in seconds
 CONTACTS = ("hard", "soft")
 FRAME_ID = "fr3_link0"
 
@@ -81,6 +81,8 @@ class Task:
         self.size = size
         if self.size not in SIZES:
             raise ValueError(f"size must be one of {', '.join(SIZES)}, got {self.size!r}")
+        if self.size not in self.sizes:
+            raise ValueError(f"task {self.name} has no {self.size!r} size (its sizes: {', '.join(self.sizes)})")
         self.config: SizeConfig = self.sizes[self.size]
         self._sims: dict = {}
         self._initial_state: dict = {}

@@ -40,6 +40,7 @@ FLANGE_TO_STICK = (0.0, 0.0, 0.15, 1.0, 0.0, 0.0, 0.0)
 
 CUP_SIZES = {
     "small": SizeConfig(grid_res=16, dt=4e-3, horizon=75, particles_per_body=64, spacing_cells=0.5),
+    "medium": SizeConfig(grid_res=24, dt=3e-3, horizon=100, particles_per_body=250, spacing_cells=0.5),
     "paper": SizeConfig(grid_res=64, dt=2e-3, horizon=150, particles_per_body=1000, spacing_cells=0.75),
 }
 

@@ -40,6 +40,7 @@ FLANGE_TO_PADDLE = (0.0, 0.0, 0.15, 1.0, 0.0, 0.0, 0.0)
 
 GATHERING_SIZES = {
     "small": SizeConfig(grid_res=20, dt=5e-3, horizon=100, particles_per_body=64, spacing_cells=0.5),
+    "medium": SizeConfig(grid_res=32, dt=4e-3, horizon=125, particles_per_body=250, spacing_cells=0.5),
     "paper": SizeConfig(grid_res=64, dt=2e-3, horizon=250, particles_per_body=500, spacing_cells=0.6),
 }
 

@@ -3,12 +3,12 @@ as versioned numpy archives (no pickles).
 
     fluidlab_core/tasks/data/<task>_<size>.goal.v1.npz
         format   "fluidlab-goal"          version  1
-        task     task name                size     "small" | "paper"
+        task     task name                size     "small" | "medium" | "paper"
         steps    (K,) int                 step numbers after which the goal applies
         points   (K, M, 3) float64        goal points in the base frame (m)
         script   JSON text: the scripted motion and how the points were chosen
 
-Regenerate with `python -m fluidlab_core.tasks.goals <task> --size small|paper` (runs the scripted motion on
+Regenerate with `python -m fluidlab_core.tasks.goals <task> --size small|medium|paper` (runs the scripted motion on
 the task's reference physics and overwrites the file atomically).
 """
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fluidlab_core.files import atomic_path
+from fluidlab_core.tasks.base import SIZES
 
 FORMAT = "fluidlab-goal"
 VERSION = 1
@@ -83,7 +84,7 @@ def generate(task_name: str, size: str, out=None) -> Path:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description="regenerate a task's goal file from its scripted motion")
     parser.add_argument("task")
-    parser.add_argument("--size", default="small", choices=["small", "paper"])
+    parser.add_argument("--size", default="small", choices=list(SIZES))
     parser.add_argument("--out", default=None, help="output path (default: the shipped file)")
     args = parser.parse_args(argv)
     path = generate(args.task, args.size, args.out)

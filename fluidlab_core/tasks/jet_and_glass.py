@@ -136,6 +136,8 @@ POUR_START_HOLD = 1.5  # s
 POURING_SIZES = {
     "small": SizeConfig(grid_res=32, dt=5e-3, horizon=int(POUR_SECONDS / 5e-3), particles_per_body=64,
                         spacing_cells=0.5),
+    "medium": SizeConfig(grid_res=48, dt=4e-3, horizon=int(POUR_SECONDS / 4e-3), particles_per_body=250,
+                         spacing_cells=0.5),
     "paper": SizeConfig(grid_res=64, dt=2e-3, horizon=int(POUR_SECONDS / 2e-3), particles_per_body=500,
                         spacing_cells=0.5),
 }

@@ -159,6 +159,7 @@ TASK_ICE_CREAM = M.VonMisesPlastic("task_ice_cream", density=500.0, shear_modulu
                                    yield_stress=200.0, color=M.ICE_CREAM.color)
 ICE_SIZES = {
     "small": SizeConfig(grid_res=24, dt=5e-3, horizon=100, particles_per_body=64, spacing_cells=0.5),
+    "medium": SizeConfig(grid_res=32, dt=4e-3, horizon=125, particles_per_body=250, spacing_cells=0.5),
     "paper": SizeConfig(grid_res=64, dt=2e-3, horizon=250, particles_per_body=500, spacing_cells=0.5),
 }
 

@@ -1,0 +1,66 @@
+"""What a benchmark run costs at each task size: forward and gradient rollouts per simulated step, on this machine.
+
+    python bench/bench_sizes.py [--tasks LatteArtStir GatheringEasy ...] [--sizes small medium] [--threads 1]
+
+Per task and size, after compiling (or loading) the kernels: one forward rollout of the horizon on the reference
+physics (what CMA-ES, SAC, PPO and PODS's policy rollouts pay per step) and one differentiable rollout with its
+backward pass (what DP, DP-H and PODS's gradient pay), zero actions, in ms per simulated step, and the wall time
+they imply for a 120-rollout run of one thread: CMA-ES ≈ 120 forward rollouts, DP ≈ 120 gradient rollouts.
+Writes bench/results/sizes_cpu.txt. The benchmark at a size is worth running where these estimates fit the
+machine (docs/benchmark.md).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
+    ap.add_argument("--sizes", nargs="+", default=["small", "medium"])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rollouts", type=int, default=120, help="run length the estimates are for")
+    ap.add_argument("--out", default="bench/results/sizes_cpu.txt")
+    args = ap.parse_args(argv)
+
+    import fluidlab_core
+    from fluidlab_core import tasks
+
+    fluidlab_core.init(arch="cpu", precision="f32", cpu_threads=args.threads)
+    lines = [f"Cost per simulated step by task size, CPU, {args.threads} thread(s), zero actions; estimates for a "
+             f"{args.rollouts}-rollout run (CMA-ES: forward rollouts; DP: gradient rollouts)",
+             f"{'task':<16} {'size':<7} {'grid':>4} {'horizon':>7} {'forward ms':>10} {'grad ms':>8} "
+             f"{'CMA-ES run':>11} {'DP run':>9}"]
+    print("\n".join(lines), flush=True)
+    for name in args.tasks or tasks.names():
+        for size in args.sizes:
+            task = tasks.make(name, size=size)
+            zeros = task.twists(np.zeros((task.horizon, task.n_actions)))
+            fwd = task.simulator(grad=False, contact="hard")
+            grad = task.simulator(grad=True, contact="hard")
+            times = {}
+            for key, sim, g in (("forward", fwd, False), ("grad", grad, True)):
+                task.reset(sim)
+                sim.rollout(zeros[:2], task.loss(2), grad=g)  # compile or load the kernels
+                task.reset(sim)
+                t0 = time.perf_counter()
+                sim.rollout(zeros, task.loss(task.horizon), grad=g)
+                times[key] = (time.perf_counter() - t0) / task.horizon
+            run = {k: args.rollouts * task.horizon * v / 60.0 for k, v in times.items()}
+            lines.append(f"{name:<16} {size:<7} {task.config.grid_res:>4} {task.horizon:>7} "
+                         f"{1e3 * times['forward']:>10.1f} {1e3 * times['grad']:>8.1f} "
+                         f"{run['forward']:>8.0f} min {run['grad']:>5.0f} min")
+            print(lines[-1], flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
