@@ -27,7 +27,7 @@ machine needs only this package installed. Without Ray, runs go to a pool of `--
 
 Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
 same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
-table (OUT/table.txt), one plot per task (OUT/curves_<task>.png) and the trajectories (OUT/trajectories/).
+table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task (OUT/curves_<task>.png) and the trajectories (OUT/trajectories/).
 """
 from __future__ import annotations
 
@@ -215,6 +215,41 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
     return "\n".join(lines)
 
 
+def paper_table(runs: list[dict]) -> str:
+    """The final-reward table in the layout of the paper's Table 2, as Markdown: a row per method, a column per
+    task, the reward return on the reference physics as mean ± std over seeds (the seed count where it is not the
+    most common one), and the reward constants under it."""
+    ok = [r for r in runs if "final_loss" in r]
+    if not ok:
+        return ""
+    task_names = list(dict.fromkeys(r["task"] for r in ok))
+    methods = [STILL, *[m for m in dict.fromkeys(r["method"] for r in ok) if m != STILL]]
+    counts = [len([r for r in ok if r["task"] == t and r["method"] == m]) for t in task_names for m in methods
+              if m != STILL]
+    usual = max(set(counts), key=counts.count) if counts else 0
+    lines = ["| method | " + " | ".join(task_names) + " |", "|---" * (len(task_names) + 1) + "|"]
+    for m in methods:
+        cells = []
+        for t in task_names:
+            ret = np.array([r["return"] for r in ok if r["task"] == t and r["method"] == m])
+            if len(ret) == 0:
+                cells.append("–")
+            elif m == STILL:
+                cells.append(f"{ret.mean():.1f}")
+            else:
+                cells.append(f"{ret.mean():.1f} ± {ret.std():.1f}" + (f" (n={len(ret)})" if len(ret) != usual else ""))
+        lines.append(f"| {'still tool' if m == STILL else m} | " + " | ".join(cells) + " |")
+    consts = []
+    for t in task_names:
+        r = next(r for r in ok if r["task"] == t)
+        consts.append(f"{t} {r['reward_c1']:g} − {r['reward_c2']:g} ℓ over {r['horizon']} steps")
+    lines.append("")
+    lines.append(f"Reward return Σ_k (c1 − c2 ℓ_k) on the reference physics, mean ± std over {usual} seeds, "
+                 f"size {ok[0]['size']}, {ok[0]['budget'] // ok[0]['horizon']} rollouts per run. Per task: "
+                 + "; ".join(consts) + ".")
+    return "\n".join(lines)
+
+
 def plot(runs: list[dict], out: Path) -> list[Path]:
     """One PNG per task: best reference loss against simulated steps and against wall time, a line per method
     (the mean over seeds) with a band from the best to the worst seed."""
@@ -357,6 +392,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
             shutdown()
     text = table(records, refused)
     (out / "table.txt").write_text(text + "\n")
+    (out / "table2.md").write_text(paper_table(records) + "\n")
     log(text)
     for path in plot(records, out):
         log(f"wrote {path}")

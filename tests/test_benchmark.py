@@ -95,3 +95,18 @@ def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
     assert cli.main(["benchmark", "--tasks", "Nope", "--out", "unused"]) == 2
     err = capsys.readouterr().err
     assert "fluidlab benchmark: error: unknown task 'Nope'; known tasks: LatteArtStir" in err
+
+
+def test_paper_table_has_a_row_per_method_and_a_column_per_task():
+    def rec(task, method, seed, ret):
+        return {"task": task, "method": method, "seed": seed, "final_loss": -ret, "return": ret, "size": "small",
+                "budget": 750, "horizon": 75, "reward_c1": 1.0, "reward_c2": 2e5}
+
+    runs = [rec("A", "still", 0, -5.0), rec("A", "dp", 0, 10.0), rec("A", "dp", 1, 14.0), rec("B", "dp", 0, 3.0),
+            rec("B", "dp", 1, 5.0), rec("B", "sac", 0, 1.0), {"task": "B", "method": "ppo", "error": "x"}]
+    lines = benchmark.paper_table(runs).splitlines()
+    assert lines[0] == "| method | A | B |"
+    assert lines[2] == "| still tool | -5.0 | – |"
+    assert lines[3] == "| dp | 12.0 ± 2.0 | 4.0 ± 1.0 |"
+    assert lines[4] == "| sac | – | 1.0 ± 0.0 (n=1) |"  # fewer seeds than the rest are marked; failed runs are not rows
+    assert "mean ± std over 2 seeds" in lines[-1] and "A 1 − 200000 ℓ over 75 steps" in lines[-1]
