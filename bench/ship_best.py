@@ -1,5 +1,4 @@
-"""Copy the best run of each task from a benchmark folder (its runs.jsonl: `python -m fluidlab_core.benchmark`
-or bench/bench_tasks.py) into trajectories/<task>/, with its report and a video of its episode (rendered on
+"""Copy the best run of each task from a benchmark folder (its runs.jsonl, from `python -m fluidlab_core.benchmark`) into trajectories/<task>/, with its report and a video of its episode (rendered on
 the reference physics).
 
     python bench/ship_best.py bench/results/benchmark_small [--dest trajectories]

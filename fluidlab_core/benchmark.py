@@ -5,7 +5,7 @@
     fluidlab benchmark ...            (the same)
 
 What a run is. One optimisation of one task by one method (optim.METHODS: sac, ppo and pods need the `rl`
-extra) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
+extra; ABLATIONS below: DP with techniques switched off) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
 every method: a DP iteration over r steps counts r, an RL environment step 1, a PODS iteration 2 rollouts;
 DP's backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
 `--min-generations` generations (default 30). Its population is chosen to fit (optim/cmaes.py), and a budget
@@ -40,6 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
+# DP ablations: benchmark methods that run DP with techniques switched off (optim.TECHNIQUES)
+ABLATIONS = {"dp-no-sharing": ("gradient_sharing",), "dp-no-attraction": ("attraction",),
+             "dp-neither": ("gradient_sharing", "attraction"), "dp-no-soft": ("soft_contact",),
+             "dp-no-expanding": ("expanding_region",)}
 STILL = "still"  # not an optimiser: the tool kept still (zero twists), the loss every method should beat
 FLAT_WINDOW = 0.2  # the last share of the budget a flattened curve improves by less than FLAT_TOLERANCE
 FLAT_TOLERANCE = 0.01
@@ -103,8 +107,10 @@ def run_job(spec: dict) -> dict:
                 curve.append([int(p.steps), evaluate(p.best_theta, p.parametrisation), round(wall, 3)])
             return False
 
-        traj = optim.optimise(task, spec["method"], budget, seed=int(spec["seed"]), callback=callback,
-                              min_generations=spec.get("min_generations") if spec["method"] == "cma-es" else None)
+        method, without = (("dp", ABLATIONS[spec["method"]]) if spec["method"] in ABLATIONS
+                           else (spec["method"], ()))
+        traj = optim.optimise(task, method, budget, seed=int(spec["seed"]), callback=callback, without=without,
+                              min_generations=spec.get("min_generations") if method == "cma-es" else None)
         wall = time.perf_counter() - t0 - spent["eval"]
         final = float(traj.metadata["final_loss"])
         if not curve or curve[-1][0] < traj.metadata["steps_used"]:
@@ -342,9 +348,10 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
             use_ray = True
         except ImportError:
             use_ray = False
-    unknown = [m for m in methods if m not in optim.METHODS]
+    known = (*optim.METHODS, *ABLATIONS)
+    unknown = [m for m in methods if m not in known]
     if unknown:
-        raise ValueError(f"unknown method(s) {', '.join(unknown)}; methods: {', '.join(optim.METHODS)}")
+        raise ValueError(f"unknown method(s) {', '.join(unknown)}; methods: {', '.join(known)}")
     out.mkdir(parents=True, exist_ok=True)
     runs_path = out / "runs.jsonl"
     specs, refused = [], []
@@ -406,7 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fluidlab benchmark", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=[*METHODS, *ABLATIONS],
+                    help="default: every optimiser; the DP ablations run DP without techniques: "
+                    + ", ".join(f"{k} (without {' and '.join(v)})" for k, v in ABLATIONS.items()))
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--rollouts", type=int, default=150, help="budget per run in rollouts of the task's horizon "
                     "(default 150: 30 CMA-ES generations of 5)")
