@@ -27,7 +27,6 @@ Needs torch (the `rl` extra).
 """
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -58,12 +57,11 @@ def improve(actions: np.ndarray, grad: np.ndarray, v_max: float, step: float = S
 def run(task, budget: int, seed: int, callback=None, max_iterations: int | None = None) -> Result:
     """Run first-order PODS for `budget` simulated steps (two rollouts per iteration); `callback(progress)` after
     each iteration (True stops). Returns the best episode's actions as an open-loop Result."""
-    from fluidlab_core import runtime
     from fluidlab_core.envs import FluidLabEnv
+    from fluidlab_core.optim.rl import set_torch_threads
 
     torch = _import_torch()
-    cfg = runtime.ensure_init()
-    torch.set_num_threads(int(cfg.cpu_threads or os.environ.get("FLUIDLAB_CPU_THREADS") or os.cpu_count() or 1))
+    set_torch_threads(torch)
     torch.manual_seed(int(seed))
     rng = np.random.default_rng(seed)
     horizon, k, v = task.horizon, task.n_actions, float(task.max_tool_speed)

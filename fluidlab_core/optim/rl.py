@@ -52,6 +52,15 @@ def import_sb3():
     return stable_baselines3, torch
 
 
+def set_torch_threads(torch):
+    """torch uses as many threads as the engine: fluidlab_core.init's cpu_threads (the benchmark's --threads), or
+    FLUIDLAB_CPU_THREADS, or all cores."""
+    from fluidlab_core import runtime
+
+    cfg = runtime.ensure_init()
+    torch.set_num_threads(int(cfg.cpu_threads or os.environ.get("FLUIDLAB_CPU_THREADS") or os.cpu_count() or 1))
+
+
 def _model(method: str, env, task, budget: int, seed: int):
     sb3, _ = import_sb3()
     hp = dict(HYPERPARAMETERS[method])
@@ -71,7 +80,6 @@ def run(task, method: str, budget: int, seed: int, callback=None, max_iterations
     an open-loop Result (see the module's docstring)."""
     import gymnasium as gym
 
-    from fluidlab_core import runtime
     from fluidlab_core.envs import FluidLabEnv
 
     if method not in RL_METHODS:
@@ -79,8 +87,7 @@ def run(task, method: str, budget: int, seed: int, callback=None, max_iterations
     sb3, torch = import_sb3()
     from stable_baselines3.common.callbacks import BaseCallback
 
-    cfg = runtime.ensure_init()
-    torch.set_num_threads(int(cfg.cpu_threads or os.environ.get("FLUIDLAB_CPU_THREADS") or os.cpu_count() or 1))
+    set_torch_threads(torch)
     par = P.open_loop(task)
     zero_offset = np.zeros(par.size - par.n_action_params)
     v = task.max_tool_speed
