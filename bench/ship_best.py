@@ -1,7 +1,10 @@
 """Copy the best run of each task from a benchmark folder (its runs.jsonl, from `python -m fluidlab_core.benchmark`) into trajectories/<task>/, with its report and a video of its episode (rendered on
 the reference physics).
 
-    python bench/ship_best.py bench/results/benchmark_small [--dest trajectories]
+    python bench/ship_best.py bench/results/benchmark_small [--dest trajectories] [--tasks A B]
+
+A task's previously shipped files (trajectory, report, video) are removed when its best run has another name;
+the names in tests and docs that point at them then need the new name (the script prints both).
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("bench_out")
     ap.add_argument("--dest", default="trajectories")
+    ap.add_argument("--tasks", nargs="+", default=None, help="only these tasks (default: every task in the runs)")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"], help="Taichi backend of the videos")
     args = ap.parse_args()
     import fluidlab_core
@@ -25,6 +29,8 @@ def main():
     runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
     best = {}
     for r in runs:
+        if args.tasks and r["task"] not in args.tasks:
+            continue
         if "final_loss" in r and "trajectory" in r and (r["task"] not in best
                                                          or r["final_loss"] < best[r["task"]]["final_loss"]):
             best[r["task"]] = r
@@ -37,8 +43,14 @@ def main():
         dest.mkdir(parents=True, exist_ok=True)
         # shipped names carry the task: sim_node's trajectory names (file stems) are unique across the folder
         stem = src.stem if src.stem.startswith(task + "_") else f"{task}_{src.stem}"
+        for old in sorted(dest.iterdir()):
+            if old.name.split(".")[0] != stem and old.suffix in (".json", ".mp4"):
+                print(f"{task}: removing {old} (replaced by {stem})")
+                old.unlink()
         shutil.copy(src, dest / f"{stem}.json")
-        shutil.copy(src.with_name(src.stem + ".report.json"), dest / f"{stem}.report.json")
+        report = json.loads(src.with_name(src.stem + ".report.json").read_text())
+        report["trajectory"] = str(dest / f"{stem}.json")  # where it ships, not where the run wrote it
+        (dest / f"{stem}.report.json").write_text(json.dumps(report, indent=1))
         traj = Trajectory.load(dest / f"{stem}.json")
         with tempfile.TemporaryDirectory() as tmp:
             out = render_episode(traj, tmp, every=1, size=(480, 360), fps=25)
