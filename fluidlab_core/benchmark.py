@@ -27,7 +27,8 @@ machine needs only this package installed. Without Ray, runs go to a pool of `--
 
 Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
 same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
-table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task (OUT/curves_<task>.png) and the trajectories (OUT/trajectories/).
+table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
+(OUT/curves_<task>.png), an overview of every task (OUT/overview.png) and the trajectories (OUT/trajectories/).
 """
 from __future__ import annotations
 
@@ -292,7 +293,48 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
         fig.savefig(path, dpi=90)
         plt.close(fig)
         paths.append(path)
-    return paths
+    overview = _overview(ok, out, plt)
+    return paths + ([overview] if overview else [])
+
+
+def _overview(ok: list[dict], out: Path, plt) -> Path | None:
+    """One figure for the README: a panel per task, each method's improvement on the still tool against the share
+    of the budget, (L_still − L_best) / |L_still| averaged over seeds (higher is better; 0 is the still tool, 1
+    a loss of zero; it reads the same for Mixing, whose loss is negative)."""
+    task_names = [t for t in dict.fromkeys(r["task"] for r in ok)
+                  if any(r["task"] == t and r["method"] == STILL for r in ok)]
+    if not task_names:
+        return None
+    cols = min(4, len(task_names))
+    rows = -(-len(task_names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), squeeze=False)
+    methods = [m for m in dict.fromkeys(r["method"] for r in ok) if m != STILL]
+    colors = {m: f"C{i}" for i, m in enumerate(methods)}
+    for ax, task in zip(axes.flat, task_names):
+        still = next(r for r in ok if r["task"] == task and r["method"] == STILL)["final_loss"]
+        for m in methods:
+            mr = [r for r in ok if r["task"] == task and r["method"] == m]
+            if not mr:
+                continue
+            grid = np.linspace(0.0, 1.0, 41)[1:]
+            ys = np.array([[_best_at(r["curve"], 0, g * r["budget"]) for g in grid] for r in mr])
+            keep = np.isfinite(ys).all(axis=0)
+            gain = (still - ys[:, keep].mean(axis=0)) / abs(still)
+            ax.plot(grid[keep], gain, color=colors[m], label=m)
+        ax.axhline(0.0, color="grey", linestyle="--", linewidth=0.8)
+        ax.set_title(task, fontsize=10)
+        ax.set_xlabel("share of the budget", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(task_names):]:
+        ax.axis("off")
+    axes.flat[0].set_ylabel("improvement on the still tool", fontsize=8)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(methods), fontsize=8)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    path = out / "overview.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
 
 
 def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):

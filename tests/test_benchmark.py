@@ -76,6 +76,7 @@ def _sweep_twice(tmp_path):
     table = (tmp_path / "table.txt").read_text()
     assert "LatteArtStir" in table and "cma-es" in table and " 2 " in table and "the tool kept still" in table
     assert (tmp_path / "curves_LatteArtStir.png").stat().st_size > 10_000
+    assert (tmp_path / "overview.png").stat().st_size > 5_000  # the README's figure: one panel per task
     # an RL baseline goes through the same machinery: a Ray job, checkpoints on the reference physics, a trajectory
     pytest.importorskip("stable_baselines3")
     logs.clear()
