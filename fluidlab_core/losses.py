@@ -34,6 +34,7 @@ class StepState:
     tool_position: np.ndarray
     tool_rotation: np.ndarray
     active: np.ndarray | None = None
+    gas: object | None = None  # fluidlab_core.gas.GasView in a scene with gas: its fields after the step
 
     def select(self, particles=None) -> np.ndarray:
         """Row indices of the active particles among `particles` (a slice, an index array, or None for all)."""
@@ -53,7 +54,7 @@ class StepState:
         return out
 
 
-GRAD_KEYS = ("x", "v", "tool_position", "tool_rotation")
+GRAD_KEYS = ("x", "v", "tool_position", "tool_rotation")  # and, in a gas scene, "gas_<field>" (gas.GasView)
 
 
 class Loss:
@@ -73,7 +74,8 @@ class Loss:
         return step in self.steps
 
     def evaluate(self, state: StepState, grad: bool):
-        """(value, {key: gradient} or None). Keys from GRAD_KEYS; missing keys mean zero gradient."""
+        """(value, {key: gradient} or None). Keys from GRAD_KEYS or "gas_<field>" (fields of state.gas: temperature,
+        smoke, velocity, named scalars); missing keys mean zero gradient."""
         raise NotImplementedError
 
     def __call__(self, state: StepState, horizon: int, grad: bool = False):
@@ -82,7 +84,7 @@ class Loss:
             return 0.0, {}
         value, grads = self.evaluate(state, grad)
         grads = {k: self.weight * np.asarray(g, dtype=np.float64) for k, g in (grads or {}).items()}
-        unknown = set(grads) - set(GRAD_KEYS)
+        unknown = {k for k in grads if k not in GRAD_KEYS and not k.startswith("gas_")}
         if unknown:
             raise KeyError(f"loss {type(self).__name__} returned gradients for unknown keys {sorted(unknown)}; "
                            f"allowed: {GRAD_KEYS}")
@@ -208,3 +210,64 @@ class Callable(Loss):
 
     def evaluate(self, state, grad):
         return self.func(state, grad)
+
+
+def _gas(state):
+    if getattr(state, "gas", None) is None:
+        raise ValueError("this loss reads the gas, and the scene has none (Scene.add_gas)")
+    return state.gas
+
+
+class GasSensors(Loss):
+    """Σ_i |f(x_i) − target_i|^p of a gas field ("temperature" in K, "smoke" in kg/m³ or a named scalar) read at
+    sensor points x_i (P, 3) in m by trilinear interpolation of the cell values; p = 1 (default, the FluidLab
+    Air Circulation loss) or 2. target: one number or one per sensor."""
+
+    def __init__(self, points, field: str = "temperature", target=0.0, power: int = 1, steps="all",
+                 weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(self.points)):
+            raise ValueError("sensor points must be finite (m)")
+        if field == "velocity":
+            raise ValueError("GasSensors reads a scalar field; use GasVelocity for the velocity")
+        if power not in (1, 2):
+            raise ValueError(f"power must be 1 or 2, got {power!r}")
+        self.field, self.power = field, int(power)
+        self.target = np.broadcast_to(np.asarray(target, dtype=np.float64), (len(self.points),)).copy()
+        self._weights = None
+
+    def evaluate(self, state, grad):
+        gas = _gas(state)
+        f = gas.field(self.field)
+        if self._weights is None:
+            self._weights = gas.weights(self.points)
+        idx, w = self._weights
+        values = (w * f.reshape(-1)[idx]).sum(axis=1)
+        d = values - self.target
+        value = float(np.sum(np.abs(d)) if self.power == 1 else np.sum(d * d))
+        if not grad:
+            return value, None
+        dv = np.sign(d) if self.power == 1 else 2.0 * d
+        g = np.zeros(f.size)
+        np.add.at(g, idx.ravel(), (w * dv[:, None]).ravel())
+        return value, {f"gas_{self.field}": g.reshape(f.shape)}
+
+
+class GasLinear(Loss):
+    """Σ_c a_c · f_c over the cells of a gas field (a linear functional, for tests and probes): `fields` maps a
+    field name ("temperature", "smoke", "velocity" or a named scalar) to its weights (the field's shape)."""
+
+    def __init__(self, fields: dict, steps="final", weight: float = 1.0):
+        super().__init__(steps, weight)
+        self.fields = {k: np.asarray(v, dtype=np.float64) for k, v in fields.items()}
+
+    def evaluate(self, state, grad):
+        gas = _gas(state)
+        value = 0.0
+        for name, a in self.fields.items():
+            f = gas.field(name)
+            if a.shape != f.shape:
+                raise ValueError(f"GasLinear weights for {name!r} have shape {a.shape}, the field {f.shape}")
+            value += float(np.sum(a * f))
+        return value, ({f"gas_{k}": a for k, a in self.fields.items()} if grad else None)

@@ -409,3 +409,65 @@ def render(
     if path is not None:
         _write_png_atomic(image, path)
     return np.asarray(image).copy()
+
+
+def gas_slice(sim, path=None, field: str = "temperature", axis: int = 2, at: float | None = None,
+              size: tuple[int, int] = (800, 600), title: str | None = None, vmin=None, vmax=None,
+              points=None) -> np.ndarray:
+    """A slice of a gas field as a picture: the cells of the plane `axis` = `at` (m; default the middle of the gas
+    box), coloured by `field` ("temperature" in °C, "smoke", "speed", or a named scalar), solids grey, the tools'
+    origins marked, optional `points` (P, 3) (e.g. sensors) as dots. World axes label the picture (REP-103).
+    Returns the RGB image (H, W, 3) uint8 and writes it as a PNG if `path` is given."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    view = sim.view()
+    spec = sim.spec
+    shape = view.temperature.shape
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2 (x, y, z), got {axis!r}")
+    lo = spec.lower[axis]
+    at = lo + 0.5 * shape[axis] * spec.dx if at is None else float(at)
+    k = int(np.clip(np.floor((at - lo) / spec.dx), 0, shape[axis] - 1))
+    if field == "speed":
+        values, unit = np.linalg.norm(view.velocity, axis=-1), "m/s"
+    elif field == "temperature":
+        values, unit = view.temperature - 273.15, "°C"
+    else:
+        values, unit = view.field(field), ("kg/m³" if field == "smoke" else "")
+    plane = np.take(values, k, axis=axis)
+    solid = np.take(view.solid, k, axis=axis)
+    other = [d for d in range(3) if d != axis]
+    extent = [spec.lower[other[0]], spec.lower[other[0]] + shape[other[0]] * spec.dx,
+              spec.lower[other[1]], spec.lower[other[1]] + shape[other[1]] * spec.dx]
+    dpi = 100
+    fig, ax = plt.subplots(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
+    shown = np.ma.masked_where(solid, plane)
+    cmap = plt.get_cmap("coolwarm" if field == "temperature" else "viridis").copy()
+    cmap.set_bad((0.55, 0.55, 0.55))
+    im = ax.imshow(shown.T, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    fig.colorbar(im, ax=ax, label=f"{field} ({unit})" if unit else field)
+    for i, t in enumerate(sim.tool_specs):
+        p = sim._tool_p[i]
+        ax.plot(p[other[0]], p[other[1]], "k^", markersize=8)
+    if points is not None:
+        pts = np.asarray(points).reshape(-1, 3)
+        ax.plot(pts[:, other[0]], pts[:, other[1]], "wo", markersize=3, markeredgecolor="k", markeredgewidth=0.5)
+    names = "xyz"
+    ax.set_xlabel(f"{names[other[0]]} (m)")
+    ax.set_ylabel(f"{names[other[1]]} (m)")
+    ax.set_title(title or f"{field}, {names[axis]} = {lo + (k + 0.5) * spec.dx:.3f} m, t = {sim.time:.2f} s")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    buf.seek(0)
+    image = Image.open(buf).convert("RGB")
+    if path is not None:
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        _write_png_atomic(image, path)
+    return np.asarray(image)

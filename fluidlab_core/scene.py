@@ -110,6 +110,7 @@ class Scene:
         self.statics: list[StaticHandle] = []
         self.tools: list = []  # engine.tools.ToolSpec
         self.emitters: list = []  # engine.emitters.EmitterSpec
+        self.gas = None  # fluidlab_core.gas.GasSpec once add_gas was called
         self._n_particles = 0
         self._n_rigid = 0
 
@@ -279,6 +280,162 @@ class Scene:
         self.emitters.append(spec)
         return handle
 
+    # --- gas (air, smoke) ---------------------------------------------------------------------------------
+    def add_gas(self, resolution: int | None = None, lower=None, upper=None, walls="closed",
+                ambient_temperature: float = 293.15, initial_temperature: float | None = None,
+                air_density: float = 1.2, buoyancy_temperature: float | None = None,
+                buoyancy_smoke: float | None = None, vorticity: float = 0.0, viscosity: float = 0.0,
+                advection: str = "maccormack", tolerance: float = 1e-6, max_iterations: int = 200,
+                on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
+                statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
+                particle_drag: float = 0.0, check_every: int = 1):
+        """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
+        equations). A scene with gas and no particles builds a GasSimulator (fluidlab_core/gas_simulator.py).
+
+        resolution: cells along the gas box's longest side (default the scene's grid_res); lower/upper: the gas
+        box (m, default the domain; it must lie inside it). walls: "closed" (no flow through), "open" (p = 0
+        outside: outflow and inflow), an inflow velocity (vx, vy, vz) m/s, one for all faces or a dict over
+        "x-", "x+", "y-", "y+", "z-", "z+" (others closed). Temperatures in K (initial: the ambient by default);
+        air_density kg/m³. Buoyancy a = g (κ s − β (T − T_amb)): β in 1/K (default 1/T_amb, an ideal gas), κ in
+        m³/kg (default 1/air_density). vorticity: the confinement strength ε (0: off); viscosity: kinematic ν in
+        m²/s (0: off; explicit, so ν dt/Δx² ≤ 1/6 per gas substep). advection: "maccormack" (second order,
+        clamped) or "semi-lagrangian". tolerance: relative residual of the pressure solve (MGPCG), at most
+        max_iterations; on_fail: "raise" or "warn" when it is not reached. max_cfl: the most cells the flow may
+        cross in one gas step (checked at build from the sources' speeds and every step from the flow). scalars:
+        names of extra advected scalars. substeps: gas steps per scene step. statics_block / tools_block /
+        particles_block: which solids the gas flows around (particles: MPM cells at least half full move the gas
+        with them); particle_drag: 1/s, the drag of the gas on particles (0: none)."""
+        from fluidlab_core.gas import ADVECTIONS, GasSpec, _number, parse_walls
+
+        if self.gas is not None:
+            raise ValueError("the scene already has gas (add_gas once)")
+        lo = self.lower if lower is None else _vec3("gas lower", lower)
+        hi = self.upper if upper is None else _vec3("gas upper", upper)
+        tol = 1e-9 * float(np.max(self.upper - self.lower))
+        if not np.all(lo < hi):
+            raise ValueError(f"the gas box needs lower < upper on every axis, got {tuple(lo)}..{tuple(hi)}")
+        if np.any(lo < self.lower - tol) or np.any(hi > self.upper + tol):
+            raise ValueError(f"the gas box {tuple(lo)}..{tuple(hi)} m does not fit the scene's domain "
+                             f"{tuple(self.lower)}..{tuple(self.upper)} m")
+        res = self.grid_res if resolution is None else resolution
+        if not (isinstance(res, (int, np.integer)) and res >= 2):
+            raise ValueError(f"gas resolution must be an integer >= 2 (cells along the longest side), got {res!r}")
+        dx = float((hi - lo).max() / int(res))
+        shape = tuple(max(1, int(round(float(e) / dx))) for e in (hi - lo))
+        if advection not in ADVECTIONS:
+            raise ValueError(f"advection must be one of {ADVECTIONS}, got {advection!r}")
+        if on_fail not in ("raise", "warn"):
+            raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
+        if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
+            raise ValueError(f"gas substeps must be an integer >= 1, got {substeps!r}")
+        if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
+            raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+        tolerance = _number("tolerance", tolerance, 0.0, strict=True)
+        if tolerance >= 1.0:
+            raise ValueError(f"tolerance is a relative residual below 1, got {tolerance}")
+        names = tuple(str(n) for n in scalars)
+        for n in names:
+            if not n.isidentifier() or n in ("temperature", "smoke", "velocity"):
+                raise ValueError(f"scalar name {n!r} must be an identifier other than temperature, smoke, velocity")
+        if len(set(names)) != len(names):
+            raise ValueError(f"scalar names must be unique, got {names}")
+        self.gas = GasSpec(
+            lower=lo, shape=shape, dx=dx, walls=parse_walls(walls), gravity=self.gravity.copy(),
+            ambient_temperature=_number("ambient_temperature", ambient_temperature, 0.0, strict=True),
+            initial_temperature=_number("initial_temperature", initial_temperature, 0.0, strict=True,
+                                        allow_none=True),
+            air_density=_number("air_density", air_density, 0.0, strict=True),
+            buoyancy_temperature=_number("buoyancy_temperature", buoyancy_temperature, allow_none=True),
+            buoyancy_smoke=_number("buoyancy_smoke", buoyancy_smoke, allow_none=True),
+            vorticity=_number("vorticity", vorticity, 0.0), viscosity=_number("viscosity", viscosity, 0.0),
+            advection=advection, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
+            max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
+            statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
+            particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every))
+        return self.gas
+
+    def add_gas_source(self, name: str | None = None, shape: str = "box", size=(0.01, 0.01, 0.01),
+                       pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), tool=None, speed: float | None = None,
+                       temperature: float | None = None, smoke: float | None = None, scalars: dict | None = None,
+                       relaxation_time: float = 0.0):
+        """An inflow (vent, fan, heater) in the gas: inside its region it sets the velocity to `speed` (m/s) along
+        its frame's +z axis, the temperature (K), the smoke density (kg/m³) and named scalars (those given; None
+        leaves a field alone), fully each step or, with relaxation_time τ (s), by 1 − exp(−Δt/τ) of the way.
+        shape: "box" (size: half extents (3,) m) or "disc" (size: (radius, half thickness) m) in its frame;
+        pose: (x, y, z, qx, qy, qz, qw) of that frame in the world, or in the frame of `tool` (a tool or its
+        name), which then carries it. Its parameters have gradients (GasRolloutResult.grad_sources)."""
+        from fluidlab_core.gas import GasSourceSpec, _number
+
+        if self.gas is None:
+            raise ValueError("add_gas() before adding gas sources")
+        name = name or f"source_{len(self.gas.sources)}"
+        if any(src.name == name for src in self.gas.sources):
+            raise ValueError(f"a gas source named {name!r} already exists")
+        if shape == "box":
+            size = _vec3(f"source {name!r} size", size)
+        elif shape == "disc":
+            size = tuple(float(v) for v in np.asarray(size, dtype=np.float64).reshape(-1))
+            if len(size) != 2:
+                raise ValueError(f"source {name!r}: a disc's size is (radius, half thickness) in m, got {size}")
+        else:
+            raise ValueError(f"source {name!r}: shape must be 'box' or 'disc', got {shape!r}")
+        if not all(v > 0 and math.isfinite(v) for v in size):
+            raise ValueError(f"source {name!r}: size must be positive (m), got {tuple(size)}")
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
+            raise ValueError(f"source {name!r}: pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, "
+                             f"got {pose!r}")
+        tool_index = None
+        if tool is not None:
+            key = tool if isinstance(tool, str) else getattr(tool, "name", None)
+            names = [t.name for t in self.tools]
+            if key not in names:
+                raise ValueError(f"source {name!r}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
+            tool_index = names.index(key)
+        values = {k: _number(f"source {name!r} {k}", v, allow_none=True)
+                  for k, v in (("speed", speed), ("temperature", temperature), ("smoke", smoke))}
+        if values["temperature"] is not None and values["temperature"] <= 0:
+            raise ValueError(f"source {name!r}: temperature is in kelvin and must be > 0, got {temperature}")
+        extra = {}
+        for k, v in (scalars or {}).items():
+            if k not in self.gas.scalars:
+                raise ValueError(f"source {name!r}: unknown scalar {k!r}; add_gas(scalars=...) names "
+                                 f"{self.gas.scalars or 'none'}")
+            extra[k] = _number(f"source {name!r} scalar {k}", v)
+        if all(v is None for v in values.values()) and not extra:
+            raise ValueError(f"source {name!r} sets nothing: give speed, temperature, smoke or scalars")
+        src = GasSourceSpec(name, shape, tuple(size), pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:]),
+                            tool_index, values["speed"], values["temperature"], values["smoke"], extra,
+                            _number("relaxation_time", relaxation_time, 0.0))
+        self.gas.sources.append(src)
+        return src
+
+    def add_gas_sink(self, name: str | None = None, shape: str = "box", size=(0.01, 0.01, 0.01),
+                     pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), tool=None, suction: float | None = None,
+                     relaxation_time: float = 0.0):
+        """A sink: inside its region smoke and named scalars go to 0 (at once, or over relaxation_time s) and, with
+        `suction` (m/s), the gas is drawn in along its frame's −z axis. Same shapes and frames as a source."""
+        if self.gas is None:
+            raise ValueError("add_gas() before adding gas sinks")
+        speed = None if suction is None else -abs(float(suction))
+        return self.add_gas_source(name or f"sink_{len(self.gas.sources)}", shape, size, pose, tool, speed=speed,
+                                   smoke=0.0, scalars={k: 0.0 for k in self.gas.scalars},
+                                   relaxation_time=relaxation_time)
+
+    def gas_limits(self) -> dict:
+        """The gas step's limits for what the scene holds now: the expected fastest flow (sources, inflow walls,
+        tools; m/s), the CFL number it gives per gas substep, and the explicit viscosity number ν Δt/Δx²."""
+        g = self.gas
+        speeds = [abs(src.speed) + (self.tools[src.tool].max_speed if src.tool is not None else 0.0)
+                  for src in g.sources if src.speed is not None]
+        speeds += [float(np.linalg.norm(w)) for w in g.walls if not isinstance(w, str)]
+        if g.tools_block:
+            speeds += [t.max_speed for t in self.tools]
+        v = max(speeds, default=0.0)
+        sub = self.dt / g.substeps
+        return {"speed": v, "cfl": v * sub / g.dx, "viscous": g.viscosity * sub / g.dx ** 2, "dx": g.dx,
+                "substep": sub}
+
     # --- checks -----------------------------------------------------------------------------------------
     def stability_limits(self) -> dict:
         """The substep limits of the module docstring, with the numbers that set them."""
@@ -312,8 +469,25 @@ class Scene:
 
     def check(self):
         """Refuse scenes the solver cannot run: unstable substep, walls too thin to hold liquid, nothing in it."""
+        if self.gas is not None:
+            lim = self.gas_limits()
+            if lim["cfl"] > self.gas.max_cfl:
+                need = math.ceil(self.dt * lim["speed"] / (self.gas.max_cfl * lim["dx"]))
+                raise UnstableTimeStepError(
+                    f"gas: the fastest expected flow ({lim['speed']:.3g} m/s from the sources, inflow walls and tools) "
+                    f"crosses {lim['cfl']:.2f} cells per gas substep of {lim['substep']:.3g} s (Δx {lim['dx']:.3g} m), "
+                    f"above max_cfl {self.gas.max_cfl:g}; use add_gas(substeps >= {need}) or a smaller dt")
+            if lim["viscous"] > 1.0 / 6.0:
+                need = math.ceil(self.dt * self.gas.viscosity * 6.0 / lim["dx"] ** 2)
+                raise UnstableTimeStepError(
+                    f"gas: the explicit viscosity needs ν Δt/Δx² ≤ 1/6, got {lim['viscous']:.3g} (ν "
+                    f"{self.gas.viscosity:.3g} m²/s, gas substep {lim['substep']:.3g} s, Δx {lim['dx']:.3g} m); use "
+                    f"add_gas(substeps >= {need})")
+            if not self.bodies:
+                return
         if not self.bodies:
-            raise ValueError("the scene has no particles: add_particles() at least once")
+            raise ValueError("the scene has no particles: add_particles() at least once (or add_gas() for a gas "
+                             "scene)")
         lim = self.stability_limits()
         sub = self.substep_dt
         if sub > lim["max_dt"]:
@@ -347,6 +521,9 @@ class Scene:
         and recomputes 98 % of its steps once."""
         self.check()
         from fluidlab_core import runtime
+
+        if self.gas is not None and not self.bodies:
+            return self._build_gas(requires_grad)
         from fluidlab_core.engine.model import Model, ModelSpec
         from fluidlab_core.engine.solver import FastSolver
         from fluidlab_core.simulator import Simulator
@@ -385,3 +562,25 @@ class Scene:
         model.upload()
         state.write(0, model.initial_state())
         return Simulator(self, model, solver, state, handles, config, diff=diff)
+
+    def _build_gas(self, requires_grad: bool):
+        """A GasSimulator for a scene with gas and no particles."""
+        from fluidlab_core import runtime
+        from fluidlab_core.engine.gas import GasSolver
+        from fluidlab_core.gas_simulator import GasSimulator
+
+        config = runtime.ensure_init()
+        real = runtime.real_dtype()
+        g = self.gas
+        static = np.zeros(g.shape, dtype=np.int8)
+        if g.statics_block and self.statics:
+            idx = np.stack(np.meshgrid(*[np.arange(n) for n in g.shape], indexing="ij"), axis=-1).reshape(-1, 3)
+            centres = g.lower + g.dx * (idx + 0.5)
+            inside = np.zeros(len(centres), dtype=bool)
+            for st in self.statics:
+                inside |= np.asarray(st.shape.sdf(centres)) < 0.0
+            static = inside.reshape(g.shape).astype(np.int8)
+        if not np.any(static == 0):
+            raise ValueError("the statics fill the whole gas box: no cell holds gas")
+        solver = GasSolver(g, real, tool_specs=self.tools, static_solid=static, needs_grad=requires_grad)
+        return GasSimulator(self, g, solver, config)

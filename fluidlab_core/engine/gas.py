@@ -1,0 +1,813 @@
+"""Gas (air, smoke) as an incompressible fluid on a staggered grid: Stam's "Stable Fluids" with a second-order
+advection, Boussinesq buoyancy, vorticity confinement, viscosity, and an MGPCG pressure projection; solids
+(statics, tools, MPM particles) as moving boundaries, inflow sources and sinks; a hand-written adjoint of the
+projection and Taichi's autodiff of the other stages, so that the whole step is differentiable.
+
+Grid (SI, world frame): nx × ny × nz cubic cells of side Δx from `lower`. Velocity on the faces (MAC): u_x at
+x-faces (nx+1, ny, nz), u_y at y-faces, u_z at z-faces (m/s); scalars at cell centres: q[0] the temperature T
+(K), q[1] the smoke density s (kg/m³), q[2:] any user-named advected scalars.
+
+One gas step of Δt (stages in order, each writing a field of its own so that its gradient is a kernel's):
+
+    boundaries   cells inside a static, a tool (SDF < 0) or MPM particles are solid; a solid cell moves with its
+                 body: v_s(x) = v + ω × (x − p) for a tool, the particles' mean velocity, 0 for a static
+    sources      q ← q + w a (q_src − q), u ← u + w a (u_src − u) with w(x) ∈ [0, 1] the soft indicator of the source
+                 region in its own frame (about one cell wide at its walls, smooth: _box_weight_local),
+                 a = 1 − exp(−Δt/τ) (τ = 0: a = 1) and u_src = speed · (the source frame's +z axis); faces next to
+                 solids take the solid's velocity
+    advection    semi-Lagrangian with an RK2 backtrace x* = x − Δt u(x − ½Δt u(x)) and trilinear interpolation,
+                 with MacCormack's correction (Selle et al. 2008): φ̂ = A(φ), φ̃ = A⁻¹(φ̂), φ ← φ̂ + ½(φ − φ̃),
+                 clamped to the range of the 8 values φ̂ interpolated from (so it stays bounded)
+    forces       u ← u + Δt [ g (κ s − β (T − T_amb))                    Boussinesq buoyancy (g = gravity)
+                              + ε Δx (N × ω),  N = ∇|ω| / |∇|ω||          vorticity confinement (Fedkiw et al.)
+                              + ν ∇²u ]                                   viscosity (explicit; ν Δt/Δx² ≤ 1/6)
+    projection   u ← ũ − M Dᵀ y with L y = D ũ (poisson.py; L = D M Dᵀ, M the open faces): D u = 0 on every fluid
+                 cell to the solver's tolerance; the pressure is p = −ρ Δx y / Δt (Pa)
+
+where ũ is u with the solid faces set to the solids' velocity (no flow through a solid: u·n = v_s·n), closed
+walls to 0, inflow walls to their velocity; open walls have p = 0 outside. This is the scheme of Stam (1999)
+on a MAC grid (Fedkiw, Stam & Jensen 2001 for buoyancy and vorticity confinement); FluidLab (Xian et al. 2023)
+uses the same splitting with a Jacobi pressure solve.
+
+Gradients (GasSolver.backward_step): the projection is linear, u⁺ = P ũ with P = I − M Dᵀ Π L⁺ Π D, so its
+adjoint is ũ̄ = ū⁺ − Dᵀ Π L⁺ D M ū⁺: one more solve with the same operator (Π removes the mean on enclosed fluid
+regions, where L is singular). The other stages are kernels whose gradients Taichi generates (`kernel.grad`),
+re-run from the step's start state.
+
+What is conserved: the projection keeps the flow divergence-free (volume) to its tolerance; MacCormack
+advection neither conserves the smoke's mass exactly nor creates extrema (the clamp): its mass error is a
+truncation error, measured in tests/test_gas.py; sources and sinks add and remove what they set.
+"""
+
+import math
+
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import statics
+from fluidlab_core.engine.poisson import FLUID, SOLID, PoissonSolver
+from fluidlab_core.gas import (SMOKE, TEMPERATURE, GasCFLError, GasSolverError,  # noqa: F401 (re-exported)
+                               GasSourceSpec, GasSpec, GasState, NonFiniteGasError)
+
+# stages of the step (indices into GasSolver.V / Q)
+S0, S1, HAT, TLD, S2, S3, S3T, S4 = range(8)
+N_VEL_STAGES, N_Q_STAGES = 8, 5
+CLOSED, OPEN, INFLOW = 0, 1, 2  # wall kinds
+
+
+@ti.func
+def _smoothstep(u):
+    t = ti.min(ti.max(u, 0.0), 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _box_weight_local(half, dx):
+    """The soft indicator of a box of half extents `half` in its own frame, about one cell wide at the walls:
+    w = Π_a S((h_a² − q_a²)/(2 h_a Δx) + ½), S the smoothstep. It is smooth in q everywhere (a box's SDF has kinks
+    on its mid-planes, where a tool's pose would then have no gradient)."""
+    h = tuple(float(v) for v in half)
+
+    @ti.func
+    def weight(q):
+        w = 1.0
+        for a in ti.static(range(3)):
+            w *= _smoothstep((h[a] * h[a] - q[a] * q[a]) / (2.0 * h[a] * dx) + 0.5)
+        return w
+
+    return weight
+
+
+def _disc_weight_local(radius, half, dx):
+    """The soft indicator of a disc (radius, half thickness along z) in its own frame, likewise."""
+    r, h = float(radius), float(half)
+
+    @ti.func
+    def weight(q):
+        rr = q[0] * q[0] + q[1] * q[1]
+        return _smoothstep((r * r - rr) / (2.0 * r * dx) + 0.5) * \
+            _smoothstep((h * h - q[2] * q[2]) / (2.0 * h * dx) + 0.5)
+
+    return weight
+
+
+@ti.data_oriented
+class GasSolver:
+    """The gas step and its gradient on Taichi fields (see the module docstring). `tool_specs`: the scene's tools
+    (engine/tools.ToolSpec), whose shapes block the gas when spec.tools_block; `static_solid`: (nx, ny, nz) bools,
+    the cells inside statics, computed on the host once."""
+
+    def __init__(self, spec: GasSpec, real, tool_specs=(), static_solid: np.ndarray | None = None,
+                 needs_grad: bool = False):
+        self.spec = spec
+        self.real = real
+        self.np_real = np.float64 if real == ti.f64 else np.float32
+        self.shape = tuple(int(n) for n in spec.shape)
+        nx, ny, nz = self.shape
+        self.dx = float(spec.dx)
+        self.n_q = len(spec.scalar_names)
+        self.needs_grad = bool(needs_grad)
+        g = self.needs_grad
+        self.face_shapes = [(nx + 1, ny, nz), (nx, ny + 1, nz), (nx, ny, nz + 1)]
+        # face velocities per stage (m/s) and scalars per stage
+        self.V = [[ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+                  for _ in range(N_VEL_STAGES)]
+        self.Q = [ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g) for _ in range(N_Q_STAGES)]
+        self.omega = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # vorticity at cells (1/s)
+        self.f_vort = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # confinement acceleration (m/s²)
+        self.solid = ti.field(ti.i8, shape=self.shape)  # 0: gas, 1: static, 2: tool, 3: particles
+        self.static_solid = ti.field(ti.i8, shape=self.shape)
+        self.solid_v = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # velocity of a solid cell (m/s)
+        # particles (coupling): mass and momentum per cell, written by the coupling kernel
+        self.cell_m = ti.field(real, shape=self.shape)
+        self.cell_mv = ti.Vector.field(3, real, shape=self.shape)
+        # tools: pose at the end of the step and the twist held over it (world frame)
+        self.tool_specs = list(tool_specs)
+        nt = max(len(self.tool_specs), 1)
+        self.n_tools = len(self.tool_specs)
+        self.tool_p = ti.Vector.field(3, real, shape=nt, needs_grad=g)
+        self.tool_R = ti.Matrix.field(3, 3, real, shape=nt, needs_grad=g)
+        self.tool_v = ti.Vector.field(3, real, shape=nt, needs_grad=g)
+        self.tool_w = ti.Vector.field(3, real, shape=nt, needs_grad=g)
+        # sources: pose in the parent frame, speed, values
+        self.sources = list(spec.sources)
+        ns = max(len(self.sources), 1)
+        self.src_p = ti.Vector.field(3, real, shape=ns, needs_grad=g)
+        self.src_R = ti.Matrix.field(3, 3, real, shape=ns, needs_grad=g)
+        self.src_speed = ti.field(real, shape=ns, needs_grad=g)
+        self.src_q = ti.field(real, shape=(ns, self.n_q), needs_grad=g)
+        self._wall_kind = tuple(INFLOW if not isinstance(w, str) else (OPEN if w == "open" else CLOSED)
+                                for w in spec.walls)
+        self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
+                               for w in spec.walls)
+        self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind])
+        self.bad = ti.field(ti.i32, shape=())
+        self.max_speed = ti.field(real, shape=())
+        self._tool_sdf = [statics.sdf_func(t.shape, real, 0.5 * self.dx) for t in self.tool_specs] \
+            if spec.tools_block else []
+        self._src_weight = [(_box_weight_local(s.size, self.dx) if s.shape == "box"
+                             else _disc_weight_local(*s.size, self.dx)) for s in self.sources]
+        # compile-time constants of the kernels (Python numbers and tuples)
+        self._lower = tuple(float(v) for v in spec.lower)
+        self._gravity = tuple(float(v) for v in spec.gravity)
+        self._src_has_speed = tuple(src.speed is not None for src in self.sources)
+        self._src_tau = tuple(float(src.relaxation_time) for src in self.sources)
+        self._src_tool = tuple(-1 if src.tool is None else int(src.tool) for src in self.sources)
+        self._src_sets = tuple(tuple(self._source_sets(i, c) for c in range(self.n_q)) for i in range(len(self.sources)))
+        self._moving_solids = bool(self._tool_sdf) or spec.particles_block
+        self._static = np.zeros(self.shape, dtype=np.int8) if static_solid is None else \
+            np.asarray(static_solid, dtype=np.int8)
+        self.static_solid.from_numpy(self._static)
+        self._flags_ready = False
+        self.stats = {"iterations": [], "residual": []}
+        self.upload_sources()
+
+    # --- host I/O ----------------------------------------------------------------------------------------------
+    def upload_sources(self):
+        """Write the sources' poses, speeds and values (from their specs) to the device."""
+        names = self.spec.scalar_names
+        for i, s in enumerate(self.sources):
+            self.src_p[i] = s.position.tolist()
+            self.src_R[i] = s.rotation().tolist()
+            self.src_speed[i] = 0.0 if s.speed is None else float(s.speed)
+            for j, n in enumerate(names):
+                v = {"temperature": s.temperature, "smoke": s.smoke}.get(n, s.scalars.get(n))
+                self.src_q[i, j] = 0.0 if v is None else float(v)
+
+    def write_state(self, state: GasState, stage: int = S0):
+        for d in range(3):
+            self.V[stage][d].from_numpy(np.asarray(state.velocity[d], dtype=self.np_real))
+        self.Q[min(stage, S2) if stage < N_Q_STAGES else S2].from_numpy(np.asarray(state.scalars, dtype=self.np_real))
+
+    def read_state(self, stage: int = S0) -> GasState:
+        q_stage = stage if stage < N_Q_STAGES else S2
+        return GasState(tuple(self.V[stage][d].to_numpy() for d in range(3)), self.Q[q_stage].to_numpy())
+
+    def initial_state(self) -> GasState:
+        nx, ny, nz = self.shape
+        q = np.zeros((self.n_q, nx, ny, nz), dtype=self.np_real)
+        t0 = self.spec.initial_temperature
+        q[TEMPERATURE] = self.spec.ambient_temperature if t0 is None else t0
+        vel = tuple(np.zeros(s, dtype=self.np_real) for s in self.face_shapes)
+        for d in range(3):  # inflow walls start with their velocity on their faces
+            for side in range(2):
+                w = self.spec.walls[2 * d + side]
+                if not isinstance(w, str):
+                    idx = [slice(None)] * 3
+                    idx[d] = -1 if side else 0
+                    vel[d][tuple(idx)] = float(w[d])
+        return GasState(vel, q)
+
+    def set_tools(self, p: np.ndarray, R: np.ndarray, v: np.ndarray, w: np.ndarray):
+        """The tools' pose at the end of the step (T, 3), (T, 3, 3) and the twist held over it (T, 3), (T, 3)."""
+        for i in range(self.n_tools):
+            self.tool_p[i] = p[i].tolist()
+            self.tool_R[i] = R[i].tolist()
+            self.tool_v[i] = v[i].tolist()
+            self.tool_w[i] = w[i].tolist()
+
+    # --- small helpers -------------------------------------------------------------------------------------------
+    @ti.func
+    def _face_pos(self, d: ti.template(), I):
+        """World position of face I of axis d."""
+        off = ti.Vector([0.5, 0.5, 0.5])
+        off[d] = 0.0
+        return ti.Vector(self._lower) + self.dx * (I.cast(self.real) + off)
+
+    @ti.func
+    def _cell_pos(self, I):
+        return ti.Vector(self._lower) + self.dx * (I.cast(self.real) + 0.5)
+
+    @ti.func
+    def _interp(self, f: ti.template(), x, off0: ti.template(), off1: ti.template(), off2: ti.template(),
+                comp: ti.template()):
+        """Trilinear interpolation of field f (a face component, or with comp >= 0 the scalar comp of a Q field)
+        at world point x; returns (value, min, max) of the 8 values used."""
+        nshape = ti.static(f.shape[1:] if comp >= 0 else f.shape)
+        offs = ti.Vector([off0, off1, off2])
+        gpos = (x - ti.Vector(self._lower)) / self.dx - offs
+        base = ti.Vector([0, 0, 0])
+        frac = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+        for d in ti.static(range(3)):
+            gd = ti.min(ti.max(gpos[d], 0.0), nshape[d] - 1.0)
+            if ti.static(nshape[d] >= 2):
+                b = ti.min(ti.cast(ti.floor(gd), ti.i32), nshape[d] - 2)
+                base[d] = b
+                frac[d] = gd - b
+        value = 0.0
+        lo = 1e30
+        hi = -1e30
+        for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+            w = (frac[0] if a else 1.0 - frac[0]) * (frac[1] if b else 1.0 - frac[1]) * \
+                (frac[2] if c else 1.0 - frac[2])
+            i0 = base[0] + (a if ti.static(nshape[0] >= 2) else 0)
+            i1 = base[1] + (b if ti.static(nshape[1] >= 2) else 0)
+            i2 = base[2] + (c if ti.static(nshape[2] >= 2) else 0)
+            s = 0.0
+            if ti.static(comp >= 0):
+                s = f[comp, i0, i1, i2]
+            else:
+                s = f[i0, i1, i2]
+            value += w * s
+            lo = ti.min(lo, s)
+            hi = ti.max(hi, s)
+        return value, lo, hi
+
+    @ti.func
+    def _velocity_at(self, st: ti.template(), x):
+        ux, _, _ = self._interp(self.V[st][0], x, 0.0, 0.5, 0.5, -1)
+        uy, _, _ = self._interp(self.V[st][1], x, 0.5, 0.0, 0.5, -1)
+        uz, _, _ = self._interp(self.V[st][2], x, 0.5, 0.5, 0.0, -1)
+        return ti.Vector([ux, uy, uz])
+
+    @ti.func
+    def _backtrace(self, st: ti.template(), x, dt):
+        """RK2 (midpoint) backtrace of x over dt in the velocity of stage st."""
+        mid = x - 0.5 * dt * self._velocity_at(st, x)
+        return x - dt * self._velocity_at(st, mid)
+
+    @ti.func
+    def _face_solid(self, d: ti.template(), I):
+        """Whether face I of axis d touches a solid cell or is a wall face, and the velocity it takes then."""
+        shape = ti.static(self.shape)
+        lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+        v = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+        fixed = 0
+        n = 0.0
+        if I[d] == 0:
+            fixed = 1
+            if ti.static(self._wall_kind[2 * d] == INFLOW):
+                v = ti.Vector(self._wall_vel[2 * d], dt=self.real)
+            elif ti.static(self._wall_kind[2 * d] == OPEN):
+                fixed = 0
+        elif I[d] == shape[d]:
+            fixed = 1
+            if ti.static(self._wall_kind[2 * d + 1] == INFLOW):
+                v = ti.Vector(self._wall_vel[2 * d + 1], dt=self.real)
+            elif ti.static(self._wall_kind[2 * d + 1] == OPEN):
+                fixed = 0
+        if fixed == 0:
+            if I[d] > 0:
+                if self.solid[lo_cell] != 0:
+                    fixed = 1
+                    v += self.solid_v[lo_cell]
+                    n += 1.0
+            if I[d] < shape[d]:
+                if self.solid[I] != 0:
+                    fixed = 1
+                    v += self.solid_v[I]
+                    n += 1.0
+            if n > 1.0:
+                v = 0.5 * v
+        return fixed, v[d]
+
+    # --- stage kernels ---------------------------------------------------------------------------------------
+    @ti.kernel
+    def boundaries(self):
+        """Solid cells and their velocities: statics, tools (SDF < 0 at the cell centre), particles (cells whose
+        particle volume fraction is at least ½, at the particles' mean velocity)."""
+        for I in ti.grouped(self.solid):
+            x = self._cell_pos(I)
+            kind = ti.cast(0, ti.i8)
+            vs = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+            if self.static_solid[I] != 0:
+                kind = 1
+            for t in ti.static(range(len(self._tool_sdf))):
+                q = self.tool_R[t].transpose() @ (x - self.tool_p[t])
+                if self._tool_sdf[t](q) < 0.0:
+                    kind = 2
+                    vs = self.tool_v[t] + self.tool_w[t].cross(x - self.tool_p[t])
+            self.solid[I] = kind
+            self.solid_v[I] = vs
+
+    @ti.kernel
+    def particle_solids(self, threshold: ti.f64):
+        """Cells where the particles' volume share (cell_m holds it) reaches `threshold` are solid at the particles'
+        mean velocity (coupling, MPM → gas)."""
+        for I in ti.grouped(self.solid):
+            if self.solid[I] == 0 and self.cell_m[I] >= threshold:
+                self.solid[I] = 3
+                self.solid_v[I] = self.cell_mv[I]
+
+    @ti.kernel
+    def _flags_to_poisson(self):
+        for I in ti.grouped(self.solid):
+            self.poisson.flags[0][I] = ti.cast(FLUID if self.solid[I] == 0 else SOLID, ti.i8)
+
+    @ti.kernel
+    def sources_stage(self, a: ti.template(), b: ti.template(), dt: ti.f64):
+        """Stage b from stage a: the sources blend velocity and scalars, faces at solids take their velocity."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[a][d]):
+                fixed, vs = self._face_solid(d, I)
+                u = self.V[a][d][I]
+                if fixed:
+                    u = vs
+                else:
+                    x = self._face_pos(d, I)
+                    for s in ti.static(range(len(self.sources))):
+                        if ti.static(self._src_has_speed[s]):
+                            w = self._source_weight(s, x) * self._source_rate(s, dt)
+                            Rw, _ = self._source_frame(s)
+                            u += w * (self.src_speed[s] * Rw[d, 2] - u)
+                self.V[b][d][I] = u
+        for I in ti.grouped(self.solid):
+            gas = self.solid[I] == 0
+            x = self._cell_pos(I)
+            for c in ti.static(range(self.n_q)):
+                q = self.Q[a][c, I[0], I[1], I[2]]
+                if gas:
+                    for s in ti.static(range(len(self.sources))):
+                        if ti.static(self._src_sets[s][c]):
+                            w = self._source_weight(s, x) * self._source_rate(s, dt)
+                            q += w * (self.src_q[s, c] - q)
+                self.Q[b][c, I[0], I[1], I[2]] = q
+
+    @ti.func
+    def _source_rate(self, s: ti.template(), dt):
+        """a = 1 − exp(−Δt/τ) (1 for τ = 0: the source sets its values)."""
+        rate = 1.0
+        if ti.static(self._src_tau[s] > 0):
+            rate = 1.0 - ti.exp(-dt / self._src_tau[s])
+        return rate
+
+    def _source_sets(self, s: int, c: int) -> bool:
+        src = self.sources[s]
+        name = self.spec.scalar_names[c]
+        if name == "temperature":
+            return src.temperature is not None
+        if name == "smoke":
+            return src.smoke is not None
+        return name in src.scalars
+
+    @ti.func
+    def _source_frame(self, s: ti.template()):
+        """The source's rotation and origin in the world."""
+        R = self.src_R[s]
+        p = self.src_p[s]
+        if ti.static(self._src_tool[s] >= 0):
+            t = ti.static(self._src_tool[s])
+            p = self.tool_p[t] + self.tool_R[t] @ p
+            R = self.tool_R[t] @ R
+        return R, p
+
+    @ti.func
+    def _source_weight(self, s: ti.template(), x):
+        R, p = self._source_frame(s)
+        return self._src_weight[s](R.transpose() @ (x - p))
+
+    @ti.kernel
+    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.f64):
+        """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
+        traces forward)."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[dst][d]):
+                x = self._backtrace(vel, self._face_pos(d, I), dt)
+                o = [0.5, 0.5, 0.5]
+                o[d] = 0.0
+                value, _, _ = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
+                self.V[dst][d][I] = value
+        for I in ti.grouped(self.solid):
+            x = self._backtrace(vel, self._cell_pos(I), dt)
+            for c in ti.static(range(self.n_q)):
+                value, _, _ = self._interp(self.Q[src], x, 0.5, 0.5, 0.5, c)
+                self.Q[dst][c, I[0], I[1], I[2]] = value
+
+    @ti.func
+    def _clamp(self, v, lo, hi):
+        """v clamped to [lo, hi], with strict comparisons: where v equals a bound (a flat field, lo = v = hi) the
+        value and its gradient are those of the unclamped scheme, not of one arbitrary corner."""
+        out = v
+        if v < lo:
+            out = lo
+        if v > hi:
+            out = hi
+        return out
+
+    @ti.kernel
+    def maccormack(self, a: ti.template(), hat: ti.template(), tld: ti.template(), out: ti.template(), dt: ti.f64):
+        """out = clamp(hat + ½ (a − tld)) to the range of the values hat interpolated (MacCormack)."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[out][d]):
+                x = self._backtrace(a, self._face_pos(d, I), dt)
+                o = [0.5, 0.5, 0.5]
+                o[d] = 0.0
+                _, lo, hi = self._interp(self.V[a][d], x, o[0], o[1], o[2], -1)
+                corrected = self.V[hat][d][I] + 0.5 * (self.V[a][d][I] - self.V[tld][d][I])
+                self.V[out][d][I] = self._clamp(corrected, lo, hi)
+        for I in ti.grouped(self.solid):
+            x = self._backtrace(a, self._cell_pos(I), dt)
+            for c in ti.static(range(self.n_q)):
+                _, lo, hi = self._interp(self.Q[a], x, 0.5, 0.5, 0.5, c)
+                corrected = self.Q[hat][c, I[0], I[1], I[2]] + 0.5 * (self.Q[a][c, I[0], I[1], I[2]]
+                                                                      - self.Q[tld][c, I[0], I[1], I[2]])
+                self.Q[out][c, I[0], I[1], I[2]] = self._clamp(corrected, lo, hi)
+
+    @ti.func
+    def _cell_velocity(self, st: ti.template(), I):
+        return 0.5 * ti.Vector([self.V[st][0][I] + self.V[st][0][I + ti.Vector([1, 0, 0])],
+                                self.V[st][1][I] + self.V[st][1][I + ti.Vector([0, 1, 0])],
+                                self.V[st][2][I] + self.V[st][2][I + ti.Vector([0, 0, 1])]])
+
+    @ti.kernel
+    def curl(self, st: ti.template()):
+        """ω = ∇ × u at the cells, from the cell-centred velocity (central differences, one-sided at the walls)."""
+        shape = ti.static(self.shape)
+        for I in ti.grouped(self.omega):
+            grad = ti.Matrix.zero(self.real, 3, 3)  # grad[i, j] = ∂u_i/∂x_j
+            for j in ti.static(range(3)):
+                e = ti.Vector.unit(3, j, ti.i32)
+                lo = I - e
+                hi = I + e
+                h = 2.0
+                if I[j] == 0:
+                    lo = I
+                    h = 1.0
+                if I[j] == shape[j] - 1:
+                    hi = I
+                    h = h - 1.0
+                if h > 0.0:
+                    dv = self._cell_velocity(st, hi) - self._cell_velocity(st, lo)
+                    for i in ti.static(range(3)):
+                        grad[i, j] = dv[i] / (h * self.dx)
+            self.omega[I] = ti.Vector([grad[2, 1] - grad[1, 2], grad[0, 2] - grad[2, 0], grad[1, 0] - grad[0, 1]])
+
+    @ti.kernel
+    def confinement(self):
+        """f = ε Δx (N × ω), N = ∇|ω| / |∇|ω|| (vorticity confinement) at the gas cells."""
+        shape = ti.static(self.shape)
+        eps = ti.static(self.spec.vorticity)
+        for I in ti.grouped(self.f_vort):
+            gw = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+            for j in ti.static(range(3)):
+                e = ti.Vector.unit(3, j, ti.i32)
+                lo = I - e
+                hi = I + e
+                h = 2.0
+                if I[j] == 0:
+                    lo = I
+                    h = 1.0
+                if I[j] == shape[j] - 1:
+                    hi = I
+                    h = h - 1.0
+                if h > 0.0:
+                    gw[j] = (ti.sqrt(self.omega[hi].dot(self.omega[hi]) + 1e-20)
+                             - ti.sqrt(self.omega[lo].dot(self.omega[lo]) + 1e-20)) / (h * self.dx)
+            N = gw / ti.sqrt(gw.dot(gw) + 1e-20)
+            f = eps * self.dx * N.cross(self.omega[I])
+            if self.solid[I] != 0:
+                f = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+            self.f_vort[I] = f
+
+    @ti.kernel
+    def forces(self, a: ti.template(), qa: ti.template(), b: ti.template(), dt: ti.f64):
+        """Stage b = stage a + Δt (buoyancy + vorticity confinement + ν ∇²u) on the faces."""
+        shape = ti.static(self.shape)
+        beta = ti.static(self.spec.beta())
+        kappa = ti.static(self.spec.kappa())
+        t_amb = ti.static(self.spec.ambient_temperature)
+        nu = ti.static(self.spec.viscosity)
+        inv_dx2 = ti.static(1.0 / (self.dx * self.dx))
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[b][d]):
+                gvec = ti.Vector(self._gravity)
+                u = self.V[a][d][I]
+                acc = 0.0
+                e = ti.Vector.unit(3, d, ti.i32)
+                lo = I - e
+                has_lo = I[d] > 0
+                has_hi = I[d] < shape[d]
+                n = 0.0
+                T = 0.0
+                s = 0.0
+                fv = 0.0
+                if has_lo:
+                    T += self.Q[qa][TEMPERATURE, lo[0], lo[1], lo[2]]
+                    s += self.Q[qa][SMOKE, lo[0], lo[1], lo[2]]
+                    fv += self.f_vort[lo][d]
+                    n += 1.0
+                if has_hi:
+                    T += self.Q[qa][TEMPERATURE, I[0], I[1], I[2]]
+                    s += self.Q[qa][SMOKE, I[0], I[1], I[2]]
+                    fv += self.f_vort[I][d]
+                    n += 1.0
+                T /= n
+                s /= n
+                fv /= n
+                acc += gvec[d] * (kappa * s - beta * (T - t_amb))
+                if ti.static(self.spec.vorticity > 0.0):
+                    acc += fv
+                if ti.static(nu > 0.0):
+                    lap = 0.0
+                    for j in ti.static(range(3)):
+                        ej = ti.Vector.unit(3, j, ti.i32)
+                        lim = ti.static(self.face_shapes[d][j])
+                        lo_j = I - ej
+                        hi_j = I + ej
+                        u_lo = u
+                        u_hi = u
+                        if I[j] > 0:
+                            u_lo = self.V[a][d][lo_j]
+                        if I[j] < lim - 1:
+                            u_hi = self.V[a][d][hi_j]
+                        lap += (u_lo + u_hi - 2.0 * u) * inv_dx2
+                    acc += nu * lap
+                self.V[b][d][I] = u + dt * acc
+
+    @ti.kernel
+    def override(self, a: ti.template(), b: ti.template()):
+        """Stage b = stage a with the faces at solids and walls set to their velocity (ũ)."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[b][d]):
+                fixed, vs = self._face_solid(d, I)
+                u = self.V[a][d][I]
+                if fixed:
+                    u = vs
+                self.V[b][d][I] = u
+
+    @ti.func
+    def _open_face(self, d: ti.template(), I) -> ti.i32:
+        """Whether face I of axis d is free (M_f = 1): both sides gas, or gas and an open wall."""
+        shape = ti.static(self.shape)
+        lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+        ok = 1
+        if I[d] == 0:
+            if ti.static(self._wall_kind[2 * d] != OPEN):
+                ok = 0
+        elif I[d] == shape[d]:
+            if ti.static(self._wall_kind[2 * d + 1] != OPEN):
+                ok = 0
+        if ok == 1:
+            if I[d] > 0:
+                if self.solid[lo_cell] != 0:
+                    ok = 0
+            if I[d] < shape[d]:
+                if self.solid[I] != 0:
+                    ok = 0
+        return ok
+
+    @ti.kernel
+    def divergence(self, f0: ti.template(), f1: ti.template(), f2: ti.template(), masked: ti.template()):
+        """poisson.b = D u on the gas cells (m/s; × 1/Δx the divergence), of the face fields f0, f1, f2 (with
+        `masked`: of M u, the open faces only)."""
+        for I in ti.grouped(self.poisson.b):
+            v = 0.0
+            if self.solid[I] == 0:
+                for d in ti.static(range(3)):
+                    f = ti.static((f0, f1, f2)[d])
+                    hi = I + ti.Vector.unit(3, d, ti.i32)
+                    u_hi = f[hi]
+                    u_lo = f[I]
+                    if ti.static(masked):
+                        u_hi *= self._open_face(d, hi)
+                        u_lo *= self._open_face(d, I)
+                    v += u_hi - u_lo
+            self.poisson.b[I] = v
+
+    @ti.kernel
+    def subtract_gradient(self, src0: ti.template(), src1: ti.template(), src2: ti.template(),
+                          dst0: ti.template(), dst1: ti.template(), dst2: ti.template(), masked: ti.template()):
+        """dst = src − (M) Dᵀ y with y = poisson.x; (Dᵀ y)_f = y_low − y_high (0 outside and in solids)."""
+        shape = ti.static(self.shape)
+        for d in ti.static(range(3)):
+            src = ti.static((src0, src1, src2)[d])
+            dst = ti.static((dst0, dst1, dst2)[d])
+            for I in ti.grouped(dst):
+                lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+                y_lo = 0.0
+                y_hi = 0.0
+                if I[d] > 0:
+                    if self.solid[lo_cell] == 0:
+                        y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
+                if I[d] < shape[d]:
+                    if self.solid[I] == 0:
+                        y_hi = ti.cast(self.poisson.x[I], self.real)
+                g = y_lo - y_hi
+                if ti.static(masked):
+                    g *= self._open_face(d, I)
+                dst[I] = src[I] - g
+
+    @ti.kernel
+    def copy_stage(self, a: ti.template(), b: ti.template(), qa: ti.template(), qb: ti.template()):
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[a][d]):
+                self.V[b][d][I] = self.V[a][d][I]
+        for I in ti.grouped(self.Q[qa]):
+            self.Q[qb][I] = self.Q[qa][I]
+
+    @ti.kernel
+    def check_state(self, st: ti.template(), qs: ti.template()):
+        """bad: bit d for a non-finite velocity component d, bit 3 + c for scalar c; max_speed: largest |u|."""
+        self.bad[None] = 0
+        self.max_speed[None] = 0.0
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[st][d]):
+                u = self.V[st][d][I]
+                if not (ti.abs(u) < 1e30):
+                    ti.atomic_or(self.bad[None], 1 << d)
+                else:
+                    ti.atomic_max(self.max_speed[None], ti.abs(u))
+        for c, i, j, k in self.Q[qs]:
+            if not (ti.abs(self.Q[qs][c, i, j, k]) < 1e30):
+                ti.atomic_or(self.bad[None], 1 << (3 + c))
+
+    # --- the step ------------------------------------------------------------------------------------------------
+    def prepare_boundaries(self, particles=None):
+        """Solid cells for this step (and the pressure solver's flags when they changed)."""
+        self.boundaries()
+        if particles is not None:
+            particles()
+        if self._moving_solids or not self._flags_ready:
+            self._flags_to_poisson()
+            self.poisson.update_flags()
+            self._flags_ready = True
+
+    def forward_stages(self, dt: float):
+        """Stages S0 → S3T (everything before the projection's solve), from the state in stage S0."""
+        self.sources_stage(S0, S1, dt)
+        if self.spec.advection == "maccormack":
+            self.advect_sl(S1, S1, HAT, dt)
+            self.advect_sl(HAT, S1, TLD, -dt)
+            self.maccormack(S1, HAT, TLD, S2, dt)
+        else:
+            self.advect_sl(S1, S1, S2, dt)
+        if self.spec.vorticity > 0.0:
+            self.curl(S2)
+            self.confinement()
+        self.forces(S2, S2, S3, dt)
+        self.override(S3, S3T)
+
+    def project(self, dt: float, step: int):
+        """S4 = S3T − M Dᵀ y, L y = D S3T; returns the solve's report (raises or warns when it misses)."""
+        V = self.V[S3T]
+        self.divergence(V[0], V[1], V[2], False)
+        rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
+        self._check_solve(rep, step, "pressure")
+        W = self.V[S4]
+        self.subtract_gradient(V[0], V[1], V[2], W[0], W[1], W[2], True)
+        return rep
+
+    def _check_solve(self, rep, step, what):
+        self.stats["iterations"].append(rep["iterations"])
+        self.stats["residual"].append(rep["residual"])
+        if not rep["converged"]:
+            msg = (f"the gas {what} solve stopped at relative residual {rep['residual']:.3g} after "
+                   f"{rep['iterations']} iterations in step {step}, above the tolerance {self.spec.tolerance:g}; raise "
+                   f"max_iterations, loosen the tolerance, or check for solids that enclose gas cells")
+            if self.spec.on_fail == "raise":
+                raise GasSolverError(msg)
+            import warnings
+
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
+
+    def step(self, dt: float, step: int = 0, particles=None):
+        """One gas step of dt seconds on the state in stage S0 (tools set with set_tools)."""
+        self.prepare_boundaries(particles)
+        self.forward_stages(dt)
+        self.project(dt, step)
+        self.copy_stage(S4, S0, S2, S0)
+        if self.spec.check_every and step % self.spec.check_every == 0:
+            self.check(step, dt)
+
+    def check(self, step: int, dt: float):
+        self.check_state(S0, S0)
+        bad = int(self.bad[None])
+        if bad:
+            names = [f"velocity u_{'xyz'[d]}" for d in range(3) if bad & (1 << d)]
+            names += [self.spec.scalar_names[c] for c in range(self.n_q) if bad & (1 << (3 + c))]
+            raise NonFiniteGasError(f"the gas field(s) {', '.join(names)} became NaN or infinite in step {step}; "
+                                    f"use a smaller dt or more gas substeps, or check the sources' values")
+        cfl = float(self.max_speed[None]) * dt / self.dx
+        if cfl > self.spec.max_cfl:
+            raise GasCFLError(f"gas step {step}: the fastest flow ({float(self.max_speed[None]):.3g} m/s) crosses "
+                              f"{cfl:.2f} cells per gas step (dt {dt:.3g} s, Δx {self.dx:.3g} m), above max_cfl "
+                              f"{self.spec.max_cfl:g} that the advection takes; use gas substeps >= "
+                              f"{math.ceil(cfl / self.spec.max_cfl * self.spec.substeps)} or slower sources")
+
+    def pressure(self, dt: float) -> np.ndarray:
+        """(nx, ny, nz) pressure of the last projection (Pa, up to a constant in enclosed regions; 0 in solids)."""
+        y = self.poisson.x.to_numpy()
+        return -self.spec.air_density * self.dx / dt * y * (self.solid.to_numpy() == 0)
+
+    # --- gradients --------------------------------------------------------------------------------------------
+    def clear_grads(self):
+        for st in range(N_VEL_STAGES):
+            for d in range(3):
+                self.V[st][d].grad.fill(0)
+        for st in range(N_Q_STAGES):
+            self.Q[st].grad.fill(0)
+        for f in (self.omega, self.f_vort, self.solid_v, self.tool_p, self.tool_R, self.tool_v, self.tool_w):
+            f.grad.fill(0)
+
+    def clear_param_grads(self):
+        for f in (self.src_p, self.src_R, self.src_speed, self.src_q):
+            f.grad.fill(0)
+
+    @ti.kernel
+    def _seed(self, g0: ti.template(), g1: ti.template(), g2: ti.template(), gq: ti.template()):
+        """V[S3T].grad = (the adjoint solve's face gradient held in V[S4].grad − Dᵀ y); Q[S2].grad += gq."""
+        shape = ti.static(self.shape)
+        for d in ti.static(range(3)):
+            gin = ti.static((g0, g1, g2)[d])
+            for I in ti.grouped(gin):
+                lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+                y_lo = 0.0
+                y_hi = 0.0
+                if I[d] > 0:
+                    if self.solid[lo_cell] == 0:
+                        y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
+                if I[d] < shape[d]:
+                    if self.solid[I] == 0:
+                        y_hi = ti.cast(self.poisson.x[I], self.real)
+                self.V[S3T][d].grad[I] = gin[I] - (y_lo - y_hi)
+        for I in ti.grouped(gq):
+            self.Q[S2].grad[I] += gq[I]
+
+    def backward_step(self, dt: float, step: int, carry_v, carry_q, particles=None):
+        """The gradient of one gas step. The state at the step's start must be in S0 and the tools set; carry_v
+        (3 face fields) and carry_q hold the gradient with respect to the step's result and are replaced by the
+        gradient with respect to its start. Source and tool gradients accumulate in their fields' .grad."""
+        self.prepare_boundaries(particles)
+        self.forward_stages(dt)
+        self.clear_grads()
+        # projection adjoint: ũ̄ = ḡ − Dᵀ Π L⁺ D M ḡ
+        self.divergence(carry_v[0], carry_v[1], carry_v[2], True)
+        rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
+        self._check_solve(rep, step, "adjoint pressure")
+        self.poisson.remove_solution_means()
+        self._seed(carry_v[0], carry_v[1], carry_v[2], carry_q)
+        self.override.grad(S3, S3T)
+        self.forces.grad(S2, S2, S3, dt)
+        if self.spec.vorticity > 0.0:
+            self.confinement.grad()
+            self.curl.grad(S2)
+        if self.spec.advection == "maccormack":
+            self.maccormack.grad(S1, HAT, TLD, S2, dt)
+            self.advect_sl.grad(HAT, S1, TLD, -dt)
+            self.advect_sl.grad(S1, S1, HAT, dt)
+        else:
+            self.advect_sl.grad(S1, S1, S2, dt)
+        self.sources_stage.grad(S0, S1, dt)
+        if self._tool_sdf:
+            self.boundaries.grad()
+        self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
+
+    @ti.kernel
+    def _take_carry(self, g0: ti.template(), g1: ti.template(), g2: ti.template(), gq: ti.template()):
+        for d in ti.static(range(3)):
+            gout = ti.static((g0, g1, g2)[d])
+            for I in ti.grouped(gout):
+                gout[I] = self.V[S0][d].grad[I]
+        for I in ti.grouped(gq):
+            gq[I] = self.Q[S0].grad[I]
+
+    def carry_fields(self):
+        """Fields for the gradient carried between steps (3 face fields, one scalar field), float64."""
+        nx, ny, nz = self.shape
+        return ([ti.field(ti.f64, shape=s) for s in self.face_shapes],
+                ti.field(ti.f64, shape=(self.n_q, nx, ny, nz)))
+
+    def tool_grads(self):
+        """(dL/dp, dL/dR, dL/dv, dL/dω) of this step's tool fields, (T, 3), (T, 3, 3), (T, 3), (T, 3)."""
+        t = self.n_tools
+        return (self.tool_p.grad.to_numpy()[:t].astype(np.float64), self.tool_R.grad.to_numpy()[:t].astype(np.float64),
+                self.tool_v.grad.to_numpy()[:t].astype(np.float64), self.tool_w.grad.to_numpy()[:t].astype(np.float64))
