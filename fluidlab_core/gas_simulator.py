@@ -439,6 +439,37 @@ class GasSimulator:
             out[src.name] = d
         return out
 
+    def set_viscosity(self, viscosity: float):
+        """Change the kinematic viscosity ν (m²/s) without rebuilding; refused above the explicit limit
+        ν dt/Δx² ≤ 1/6 per gas substep."""
+        from fluidlab_core.gas import _number
+
+        nu = _number("viscosity", viscosity, 0.0)
+        sub = self.dt / self.substeps
+        if nu * sub / self.spec.dx ** 2 > 1.0 / 6.0:
+            raise ValueError(f"viscosity {nu:.3g} m²/s breaks the explicit limit ν Δt/Δx² ≤ 1/6 (Δt {sub:.3g} s, Δx "
+                             f"{self.spec.dx:.3g} m): at most {self.spec.dx ** 2 / (6 * sub):.3g} m²/s at this step")
+        self.spec.viscosity = nu
+        self.solver.nu[None] = nu
+
+    def set_solver(self, tolerance: float | None = None, max_iterations: int | None = None, on_fail: str | None = None):
+        """Change the pressure solve's relative tolerance, iteration cap or what missing it does ("raise", "warn")."""
+        from fluidlab_core.gas import _number
+
+        if tolerance is not None:
+            tol = _number("tolerance", tolerance, 0.0, strict=True)
+            if tol >= 1.0:
+                raise ValueError(f"tolerance is a relative residual below 1, got {tolerance}")
+            self.spec.tolerance = tol
+        if max_iterations is not None:
+            if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
+                raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+            self.spec.max_iterations = int(max_iterations)
+        if on_fail is not None:
+            if on_fail not in ("raise", "warn"):
+                raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
+            self.spec.on_fail = on_fail
+
     # --- sources ------------------------------------------------------------------------------------------------
     def source(self, name: str):
         names = [s.name for s in self.solver.sources]

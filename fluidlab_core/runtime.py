@@ -77,6 +77,7 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
         debug=debug,
         log_level=ti.WARN,
         offline_cache=True,
+        kernel_profiler=bool(os.environ.get("FLUIDLAB_PROFILE")),
     )
     if seed is not None:
         kwargs["random_seed"] = int(seed)

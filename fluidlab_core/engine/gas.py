@@ -112,6 +112,11 @@ class GasSolver:
         self.V = [[ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
                   for _ in range(N_VEL_STAGES)]
         self.Q = [ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g) for _ in range(N_Q_STAGES)]
+        # the range of the values each MacCormack point interpolated from (its clamp)
+        self.Vlo = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+        self.Vhi = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+        self.Qlo = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
+        self.Qhi = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
         self.omega = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # vorticity at cells (1/s)
         self.f_vort = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # confinement acceleration (m/s²)
         self.solid = ti.field(ti.i8, shape=self.shape)  # 0: gas, 1: static, 2: tool, 3: particles
@@ -140,6 +145,7 @@ class GasSolver:
         self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
                                for w in spec.walls)
         self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind])
+        self.nu = ti.field(real, shape=())  # kinematic viscosity (m²/s), a field so that it can change (set_viscosity)
         self.bad = ti.field(ti.i32, shape=())
         self.max_speed = ti.field(real, shape=())
         self._tool_sdf = [statics.sdf_func(t.shape, real, 0.5 * self.dx) for t in self.tool_specs] \
@@ -157,6 +163,7 @@ class GasSolver:
         self._static = np.zeros(self.shape, dtype=np.int8) if static_solid is None else \
             np.asarray(static_solid, dtype=np.int8)
         self.static_solid.from_numpy(self._static)
+        self.nu[None] = float(spec.viscosity)
         self._flags_ready = False
         self.stats = {"iterations": [], "residual": []}
         self.upload_sources()
@@ -266,10 +273,27 @@ class GasSolver:
         return x - dt * self._velocity_at(st, mid)
 
     @ti.func
+    def _lo_cell(self, d: ti.template(), I):
+        """The cell below face I of axis d, clamped into the grid. Every neighbour read goes through a clamped index
+        even where a branch guards it: the CPU backend may load before it branches, and a load outside a field
+        crashed (a guarded read of cell −1)."""
+        J = I - ti.Vector.unit(3, d, ti.i32)
+        J[d] = ti.max(J[d], 0)
+        return J
+
+    @ti.func
+    def _hi_cell(self, d: ti.template(), I):
+        """The cell above face I of axis d, clamped into the grid (see _lo_cell)."""
+        J = I
+        J[d] = ti.min(J[d], ti.static(self.shape)[d] - 1)
+        return J
+
+    @ti.func
     def _face_solid(self, d: ti.template(), I):
         """Whether face I of axis d touches a solid cell or is a wall face, and the velocity it takes then."""
         shape = ti.static(self.shape)
-        lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+        lo_cell = self._lo_cell(d, I)
+        hi_cell = self._hi_cell(d, I)
         v = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
         fixed = 0
         n = 0.0
@@ -292,9 +316,9 @@ class GasSolver:
                     v += self.solid_v[lo_cell]
                     n += 1.0
             if I[d] < shape[d]:
-                if self.solid[I] != 0:
+                if self.solid[hi_cell] != 0:
                     fixed = 1
-                    v += self.solid_v[I]
+                    v += self.solid_v[hi_cell]
                     n += 1.0
             if n > 1.0:
                 v = 0.5 * v
@@ -396,21 +420,28 @@ class GasSolver:
         return self._src_weight[s](R.transpose() @ (x - p))
 
     @ti.kernel
-    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.f64):
+    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.f64, keep: ti.template()):
         """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
-        traces forward)."""
+        traces forward). With `keep`, the range of the 8 values each point interpolated goes to Vlo/Vhi, Qlo/Qhi
+        (MacCormack's clamp)."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[dst][d]):
                 x = self._backtrace(vel, self._face_pos(d, I), dt)
                 o = [0.5, 0.5, 0.5]
                 o[d] = 0.0
-                value, _, _ = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
+                value, lo, hi = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
                 self.V[dst][d][I] = value
+                if ti.static(keep):
+                    self.Vlo[d][I] = lo
+                    self.Vhi[d][I] = hi
         for I in ti.grouped(self.solid):
             x = self._backtrace(vel, self._cell_pos(I), dt)
             for c in ti.static(range(self.n_q)):
-                value, _, _ = self._interp(self.Q[src], x, 0.5, 0.5, 0.5, c)
+                value, lo, hi = self._interp(self.Q[src], x, 0.5, 0.5, 0.5, c)
                 self.Q[dst][c, I[0], I[1], I[2]] = value
+                if ti.static(keep):
+                    self.Qlo[c, I[0], I[1], I[2]] = lo
+                    self.Qhi[c, I[0], I[1], I[2]] = hi
 
     @ti.func
     def _clamp(self, v, lo, hi):
@@ -424,23 +455,16 @@ class GasSolver:
         return out
 
     @ti.kernel
-    def maccormack(self, a: ti.template(), hat: ti.template(), tld: ti.template(), out: ti.template(), dt: ti.f64):
-        """out = clamp(hat + ½ (a − tld)) to the range of the values hat interpolated (MacCormack)."""
+    def maccormack(self, a: ti.template(), hat: ti.template(), tld: ti.template(), out: ti.template()):
+        """out = clamp(hat + ½ (a − tld)) to the range of the values hat interpolated (MacCormack; the range was kept
+        by the pass that made hat)."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[out][d]):
-                x = self._backtrace(a, self._face_pos(d, I), dt)
-                o = [0.5, 0.5, 0.5]
-                o[d] = 0.0
-                _, lo, hi = self._interp(self.V[a][d], x, o[0], o[1], o[2], -1)
                 corrected = self.V[hat][d][I] + 0.5 * (self.V[a][d][I] - self.V[tld][d][I])
-                self.V[out][d][I] = self._clamp(corrected, lo, hi)
-        for I in ti.grouped(self.solid):
-            x = self._backtrace(a, self._cell_pos(I), dt)
-            for c in ti.static(range(self.n_q)):
-                _, lo, hi = self._interp(self.Q[a], x, 0.5, 0.5, 0.5, c)
-                corrected = self.Q[hat][c, I[0], I[1], I[2]] + 0.5 * (self.Q[a][c, I[0], I[1], I[2]]
-                                                                      - self.Q[tld][c, I[0], I[1], I[2]])
-                self.Q[out][c, I[0], I[1], I[2]] = self._clamp(corrected, lo, hi)
+                self.V[out][d][I] = self._clamp(corrected, self.Vlo[d][I], self.Vhi[d][I])
+        for I in ti.grouped(self.Q[out]):
+            corrected = self.Q[hat][I] + 0.5 * (self.Q[a][I] - self.Q[tld][I])
+            self.Q[out][I] = self._clamp(corrected, self.Qlo[I], self.Qhi[I])
 
     @ti.func
     def _cell_velocity(self, st: ti.template(), I):
@@ -505,15 +529,14 @@ class GasSolver:
         beta = ti.static(self.spec.beta())
         kappa = ti.static(self.spec.kappa())
         t_amb = ti.static(self.spec.ambient_temperature)
-        nu = ti.static(self.spec.viscosity)
         inv_dx2 = ti.static(1.0 / (self.dx * self.dx))
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[b][d]):
                 gvec = ti.Vector(self._gravity)
                 u = self.V[a][d][I]
                 acc = 0.0
-                e = ti.Vector.unit(3, d, ti.i32)
-                lo = I - e
+                lo = self._lo_cell(d, I)
+                hi = self._hi_cell(d, I)
                 has_lo = I[d] > 0
                 has_hi = I[d] < shape[d]
                 n = 0.0
@@ -526,9 +549,9 @@ class GasSolver:
                     fv += self.f_vort[lo][d]
                     n += 1.0
                 if has_hi:
-                    T += self.Q[qa][TEMPERATURE, I[0], I[1], I[2]]
-                    s += self.Q[qa][SMOKE, I[0], I[1], I[2]]
-                    fv += self.f_vort[I][d]
+                    T += self.Q[qa][TEMPERATURE, hi[0], hi[1], hi[2]]
+                    s += self.Q[qa][SMOKE, hi[0], hi[1], hi[2]]
+                    fv += self.f_vort[hi][d]
                     n += 1.0
                 T /= n
                 s /= n
@@ -536,7 +559,8 @@ class GasSolver:
                 acc += gvec[d] * (kappa * s - beta * (T - t_amb))
                 if ti.static(self.spec.vorticity > 0.0):
                     acc += fv
-                if ti.static(nu > 0.0):
+                nu = self.nu[None]
+                if nu > 0.0:
                     lap = 0.0
                     for j in ti.static(range(3)):
                         ej = ti.Vector.unit(3, j, ti.i32)
@@ -568,7 +592,8 @@ class GasSolver:
     def _open_face(self, d: ti.template(), I) -> ti.i32:
         """Whether face I of axis d is free (M_f = 1): both sides gas, or gas and an open wall."""
         shape = ti.static(self.shape)
-        lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+        lo_cell = self._lo_cell(d, I)
+        hi_cell = self._hi_cell(d, I)
         ok = 1
         if I[d] == 0:
             if ti.static(self._wall_kind[2 * d] != OPEN):
@@ -581,7 +606,7 @@ class GasSolver:
                 if self.solid[lo_cell] != 0:
                     ok = 0
             if I[d] < shape[d]:
-                if self.solid[I] != 0:
+                if self.solid[hi_cell] != 0:
                     ok = 0
         return ok
 
@@ -612,15 +637,16 @@ class GasSolver:
             src = ti.static((src0, src1, src2)[d])
             dst = ti.static((dst0, dst1, dst2)[d])
             for I in ti.grouped(dst):
-                lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+                lo_cell = self._lo_cell(d, I)
+                hi_cell = self._hi_cell(d, I)
                 y_lo = 0.0
                 y_hi = 0.0
                 if I[d] > 0:
                     if self.solid[lo_cell] == 0:
                         y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
                 if I[d] < shape[d]:
-                    if self.solid[I] == 0:
-                        y_hi = ti.cast(self.poisson.x[I], self.real)
+                    if self.solid[hi_cell] == 0:
+                        y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
                 g = y_lo - y_hi
                 if ti.static(masked):
                     g *= self._open_face(d, I)
@@ -665,11 +691,11 @@ class GasSolver:
         """Stages S0 → S3T (everything before the projection's solve), from the state in stage S0."""
         self.sources_stage(S0, S1, dt)
         if self.spec.advection == "maccormack":
-            self.advect_sl(S1, S1, HAT, dt)
-            self.advect_sl(HAT, S1, TLD, -dt)
-            self.maccormack(S1, HAT, TLD, S2, dt)
+            self.advect_sl(S1, S1, HAT, dt, True)
+            self.advect_sl(HAT, S1, TLD, -dt, False)
+            self.maccormack(S1, HAT, TLD, S2)
         else:
-            self.advect_sl(S1, S1, S2, dt)
+            self.advect_sl(S1, S1, S2, dt, False)
         if self.spec.vorticity > 0.0:
             self.curl(S2)
             self.confinement()
@@ -687,6 +713,9 @@ class GasSolver:
         return rep
 
     def _check_solve(self, rep, step, what):
+        if not (math.isfinite(rep.get("rhs_norm", 0.0)) and math.isfinite(rep["residual"])):
+            self.check_state(S0, S0)  # which field of the step's start holds it
+            self._raise_nonfinite(int(self.bad[None]) or 1, step, "the pressure solve's right-hand side: ")
         self.stats["iterations"].append(rep["iterations"])
         self.stats["residual"].append(rep["residual"])
         if not rep["converged"]:
@@ -712,16 +741,19 @@ class GasSolver:
         self.check_state(S0, S0)
         bad = int(self.bad[None])
         if bad:
-            names = [f"velocity u_{'xyz'[d]}" for d in range(3) if bad & (1 << d)]
-            names += [self.spec.scalar_names[c] for c in range(self.n_q) if bad & (1 << (3 + c))]
-            raise NonFiniteGasError(f"the gas field(s) {', '.join(names)} became NaN or infinite in step {step}; "
-                                    f"use a smaller dt or more gas substeps, or check the sources' values")
+            self._raise_nonfinite(bad, step)
         cfl = float(self.max_speed[None]) * dt / self.dx
         if cfl > self.spec.max_cfl:
             raise GasCFLError(f"gas step {step}: the fastest flow ({float(self.max_speed[None]):.3g} m/s) crosses "
                               f"{cfl:.2f} cells per gas step (dt {dt:.3g} s, Δx {self.dx:.3g} m), above max_cfl "
                               f"{self.spec.max_cfl:g} that the advection takes; use gas substeps >= "
                               f"{math.ceil(cfl / self.spec.max_cfl * self.spec.substeps)} or slower sources")
+
+    def _raise_nonfinite(self, bad: int, step: int, where: str = ""):
+        names = [f"velocity u_{'xyz'[d]}" for d in range(3) if bad & (1 << d)]
+        names += [self.spec.scalar_names[c] for c in range(self.n_q) if bad & (1 << (3 + c))]
+        raise NonFiniteGasError(f"{where}the gas field(s) {', '.join(names)} became NaN or infinite in step {step}; "
+                                f"use a smaller dt or more gas substeps, or check the sources' and the state's values")
 
     def pressure(self, dt: float) -> np.ndarray:
         """(nx, ny, nz) pressure of the last projection (Pa, up to a constant in enclosed regions; 0 in solids)."""
@@ -735,7 +767,8 @@ class GasSolver:
                 self.V[st][d].grad.fill(0)
         for st in range(N_Q_STAGES):
             self.Q[st].grad.fill(0)
-        for f in (self.omega, self.f_vort, self.solid_v, self.tool_p, self.tool_R, self.tool_v, self.tool_w):
+        for f in (*self.Vlo, *self.Vhi, self.Qlo, self.Qhi, self.omega, self.f_vort, self.solid_v, self.tool_p,
+                  self.tool_R, self.tool_v, self.tool_w):
             f.grad.fill(0)
 
     def clear_param_grads(self):
@@ -749,15 +782,16 @@ class GasSolver:
         for d in ti.static(range(3)):
             gin = ti.static((g0, g1, g2)[d])
             for I in ti.grouped(gin):
-                lo_cell = I - ti.Vector.unit(3, d, ti.i32)
+                lo_cell = self._lo_cell(d, I)
+                hi_cell = self._hi_cell(d, I)
                 y_lo = 0.0
                 y_hi = 0.0
                 if I[d] > 0:
                     if self.solid[lo_cell] == 0:
                         y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
                 if I[d] < shape[d]:
-                    if self.solid[I] == 0:
-                        y_hi = ti.cast(self.poisson.x[I], self.real)
+                    if self.solid[hi_cell] == 0:
+                        y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
                 self.V[S3T][d].grad[I] = gin[I] - (y_lo - y_hi)
         for I in ti.grouped(gq):
             self.Q[S2].grad[I] += gq[I]
@@ -781,11 +815,11 @@ class GasSolver:
             self.confinement.grad()
             self.curl.grad(S2)
         if self.spec.advection == "maccormack":
-            self.maccormack.grad(S1, HAT, TLD, S2, dt)
-            self.advect_sl.grad(HAT, S1, TLD, -dt)
-            self.advect_sl.grad(S1, S1, HAT, dt)
+            self.maccormack.grad(S1, HAT, TLD, S2)
+            self.advect_sl.grad(HAT, S1, TLD, -dt, False)
+            self.advect_sl.grad(S1, S1, HAT, dt, True)
         else:
-            self.advect_sl.grad(S1, S1, S2, dt)
+            self.advect_sl.grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
         if self._tool_sdf:
             self.boundaries.grad()

@@ -19,6 +19,10 @@ red, so the V-cycle is a symmetric operator), restriction r_2h = ½ Σ_children 
 Laplacian times (2^l Δx)², hence ½ = 4/8), prolongation by injection, and smoothing sweeps as the coarsest
 solve. Conjugate gradients corrects what the coarse levels get wrong near irregular solids.
 
+Cost: each level's down leg (smoothing, residual, restriction) and up leg (prolongation, smoothing) is one kernel
+launch, the coarsest solve one more, a CG iteration four more; the kernels close over their level's fields, so a
+call costs no template dispatch (a V-cycle of ~30 template-kernel calls cost more in Python than in arithmetic).
+
 Stopping: ‖r_k‖₂ ≤ tol ‖b‖₂ (relative residual, b the compatible right-hand side), or the iteration cap; the
 caller decides whether missing the tolerance raises or warns (gas.py). All solver vectors are float64 whatever
 the working precision, so that a relative residual of 1e-6 is reachable on large grids.
@@ -36,6 +40,74 @@ def level_shapes(shape, min_cells: int = 4) -> list[tuple[int, int, int]]:
     while max(shapes[-1]) > min_cells:
         shapes.append(tuple(max(1, -(-n // 2)) for n in shapes[-1]))
     return shapes
+
+
+def _operator(masks, diags):
+    """The ti.func (diag, Σ y over gas neighbours) of gas cell I on one level: `masks` holds per cell a bit per
+    neighbour (2d + s: axis d, side s) that is a gas cell, `diags` the number of open faces (gas neighbours and
+    open walls), both made from the flags by `_make_masks`."""
+
+    shape = tuple(masks.shape)
+
+    @ti.func
+    def diag_off(y: ti.template(), I):
+        m = ti.cast(masks[I], ti.i32)
+        off = ti.f64(0.0)
+        for d in ti.static(range(3)):
+            for s in ti.static((0, 1)):
+                J = I + (2 * s - 1) * ti.Vector.unit(3, d, ti.i32)
+                J[d] = ti.min(ti.max(J[d], 0), shape[d] - 1)  # clamped: the backend may load before the branch
+                if (m >> (2 * d + s)) & 1:
+                    off += y[J]
+        return ti.cast(diags[I], ti.f64), off
+
+    return diag_off
+
+
+def _smoother(flags, r, z, diag_off):
+    shape = tuple(z.shape)
+    half = (shape[0], shape[1], -(-shape[2] // 2))
+
+    @ti.func
+    def half_sweep(color: ti.template()):
+        """One Gauss-Seidel half-sweep of L z = r over the cells of one colour ((i + j + k) % 2): the loop visits
+        only that colour's cells."""
+        for i, j, kk in ti.ndrange(*half):
+            k = 2 * kk + (i + j + color) % 2
+            if k < shape[2]:
+                I = ti.Vector([i, j, k])
+                if flags[I] == FLUID:
+                    diag, off = diag_off(z, I)
+                    if diag > 0.0:
+                        z[I] = (r[I] + off) / diag
+
+    return half_sweep
+
+
+def _make_masks(flags, masks, diags, open_walls):
+    shape = tuple(flags.shape)
+
+    @ti.kernel
+    def make():
+        for I in ti.grouped(flags):
+            m = 0
+            n = 0
+            if flags[I] == FLUID:
+                for d in ti.static(range(3)):
+                    for s in ti.static((0, 1)):
+                        J = I + (2 * s - 1) * ti.Vector.unit(3, d, ti.i32)
+                        outside = J[d] < 0 or J[d] >= shape[d]
+                        J[d] = ti.min(ti.max(J[d], 0), shape[d] - 1)  # never read outside the field
+                        if outside:
+                            if ti.static(open_walls[2 * d + s]):
+                                n += 1
+                        elif flags[J] == FLUID:
+                            n += 1
+                            m |= 1 << (2 * d + s)
+            masks[I] = ti.cast(m, ti.i8)
+            diags[I] = ti.cast(n, ti.i8)
+
+    return make
 
 
 @ti.data_oriented
@@ -65,138 +137,196 @@ class PoissonSolver:
         self.region_count = ti.field(f64, shape=self.max_regions)
         self.n_closed = 0
         self._regions_for = None  # the flags the regions were labelled for (bytes), to relabel only on change
-        self.sums = ti.field(f64, shape=4)  # reductions
         self.last = {"iterations": 0, "residual": 0.0, "removed": 0.0}
+        self.res = [ti.field(f64, shape=sh) for sh in self.shapes[:-1]]  # the level's residual r − L z
+        self.masks = [ti.field(ti.i8, shape=sh) for sh in self.shapes]  # gas neighbours, a bit per face
+        self.diags = [ti.field(ti.i8, shape=sh) for sh in self.shapes]  # open faces per cell
+        self._ops = [_operator(self.masks[lv], self.diags[lv]) for lv in range(self.n_levels)]
+        self._make_masks = [_make_masks(self.flags[lv], self.masks[lv], self.diags[lv], self.open_walls)
+                            for lv in range(self.n_levels)]
+        self._down = [self._make_down(lv) for lv in range(self.n_levels - 1)]
+        self._up = [self._make_up(lv) for lv in range(self.n_levels - 1)]
+        self._coarsen = [self._make_coarsen(lv) for lv in range(self.n_levels - 1)]
+        self._bottom = self._make_bottom()
+        self._make_cg()
 
-    # --- the operator, one level ---------------------------------------------------------------------------
-    @ti.func
-    def _diag_off(self, flags: ti.template(), y: ti.template(), I):
-        """(number of open faces, Σ y over fluid neighbours) of cell I."""
-        shape = flags.shape
-        diag = ti.f64(0.0)
-        off = ti.f64(0.0)
-        for d in ti.static(range(3)):
-            for s in ti.static((0, 1)):
-                J = I + (2 * s - 1) * ti.Vector.unit(3, d, ti.i32)
-                if J[d] < 0 or J[d] >= shape[d]:
-                    if ti.static(self.open_walls[2 * d + s]):
-                        diag += 1.0
-                elif flags[J] == FLUID:
-                    diag += 1.0
-                    off += y[J]
-        return diag, off
+    # --- multigrid legs, one kernel each ----------------------------------------------------------------------
+    def _restriction_factor(self, lv: int) -> float:
+        """r_2h = f Σ_children r_h with f = 4 / children: the coarse stencil is the Laplacian times (2h)², the
+        children's mean residual times h² (8 children in 3-D, 4 where one axis is a single cell thick)."""
+        fine, coarse = self.shapes[lv], self.shapes[lv + 1]
+        children = int(np.prod([2 if f > c else 1 for f, c in zip(fine, coarse)]))
+        return 4.0 / children
 
-    @ti.kernel
-    def _apply(self, flags: ti.template(), y: ti.template(), out: ti.template()):
-        """out = L y (zero on solid cells)."""
-        for I in ti.grouped(y):
-            v = ti.f64(0.0)
-            if flags[I] == FLUID:
-                diag, off = self._diag_off(flags, y, I)
-                v = diag * y[I] - off
-            out[I] = v
+    def _make_down(self, lv: int):
+        flags, r, z, rc, res = self.flags[lv], self.r[lv], self.z[lv], self.r[lv + 1], self.res[lv]
+        op = self._ops[lv]
+        sweep = _smoother(flags, r, z, op)
+        sweeps, factor = self.pre_sweeps, self._restriction_factor(lv)
+        fine = self.shapes[lv]
 
-    @ti.kernel
-    def _smooth(self, flags: ti.template(), r: ti.template(), z: ti.template(), color: ti.i32):
-        """One Gauss-Seidel half-sweep of L z = r over the cells of one colour ((i + j + k) % 2)."""
-        for I in ti.grouped(z):
-            if (I[0] + I[1] + I[2]) % 2 == color and flags[I] == FLUID:
-                diag, off = self._diag_off(flags, z, I)
-                if diag > 0.0:
-                    z[I] = (r[I] + off) / diag
+        @ti.kernel
+        def down():
+            """z = 0; pre-smoothing (red then black); the residual r − L z; the coarse level's right-hand side
+            f Σ_children (r − L z), gathered per coarse cell (no atomics)."""
+            for I in ti.grouped(z):
+                z[I] = 0.0
+            for _ in ti.static(range(sweeps)):
+                sweep(0)
+                sweep(1)
+            for I in ti.grouped(z):
+                v = ti.f64(0.0)
+                if flags[I] == FLUID:
+                    diag, off = op(z, I)
+                    v = r[I] - (diag * z[I] - off)
+                res[I] = v
+            for J in ti.grouped(rc):
+                acc = ti.f64(0.0)
+                for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+                    I = 2 * J + ti.Vector([a, b, c])
+                    inside = I[0] < fine[0] and I[1] < fine[1] and I[2] < fine[2]
+                    I = ti.min(I, ti.Vector([fine[0] - 1, fine[1] - 1, fine[2] - 1]))
+                    if inside:
+                        acc += res[I]
+                rc[J] = factor * acc
 
-    @ti.kernel
-    def _bottom(self, flags: ti.template(), r: ti.template(), z: ti.template(), sweeps: ti.i32):
-        """The coarsest level's solve: z = 0, then `sweeps` symmetric Gauss-Seidel sweeps (forward then backward
-        in lexicographic order), serially in one launch (the level has a few dozen cells)."""
-        nx, ny, nz = ti.static(z.shape)
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            for i, j, k in ti.ndrange(nx, ny, nz):
-                z[i, j, k] = 0.0
-            for _s in range(sweeps):
-                for n in range(2 * nx * ny * nz):
-                    m = n if n < nx * ny * nz else 2 * nx * ny * nz - 1 - n
-                    I = ti.Vector([m // (ny * nz), (m // nz) % ny, m % nz])
-                    if flags[I] == FLUID:
-                        diag, off = self._diag_off(flags, z, I)
-                        if diag > 0.0:
-                            z[I] = (r[I] + off) / diag
+        return down
 
-    @ti.kernel
-    def _residual_restrict(self, flags: ti.template(), r: ti.template(), z: ti.template(), coarse: ti.template()):
-        """coarse = ½ Σ_children (r − L z) (the next level's right-hand side)."""
-        for I in ti.grouped(coarse):
-            coarse[I] = 0.0
-        for I in ti.grouped(z):
-            if flags[I] == FLUID:
-                diag, off = self._diag_off(flags, z, I)
-                coarse[I // 2] += 0.5 * (r[I] - (diag * z[I] - off))
+    def _make_up(self, lv: int):
+        flags, r, z, zc = self.flags[lv], self.r[lv], self.z[lv], self.z[lv + 1]
+        sweep = _smoother(flags, r, z, self._ops[lv])
+        sweeps = self.post_sweeps
 
-    @ti.kernel
-    def _prolong(self, z: ti.template(), coarse: ti.template()):
-        for I in ti.grouped(z):
-            z[I] += coarse[I // 2]
+        @ti.kernel
+        def up():
+            """z += the coarse correction (injection); post-smoothing (black then red)."""
+            for I in ti.grouped(z):
+                z[I] += zc[I // 2]
+            for _ in ti.static(range(sweeps)):
+                sweep(1)
+                sweep(0)
 
-    @ti.kernel
-    def _coarsen_flags(self, fine: ti.template(), coarse: ti.template()):
-        for I in ti.grouped(coarse):
-            coarse[I] = ti.cast(SOLID, ti.i8)
-        for I in ti.grouped(fine):
-            if fine[I] == FLUID:
-                coarse[I // 2] = ti.cast(FLUID, ti.i8)
+        return up
 
-    @ti.kernel
-    def _clear(self, f: ti.template()):
-        for I in ti.grouped(f):
-            f[I] = 0.0
+    def _make_coarsen(self, lv: int):
+        fine, coarse = self.flags[lv], self.flags[lv + 1]
+
+        @ti.kernel
+        def coarsen():
+            for I in ti.grouped(coarse):
+                coarse[I] = ti.cast(SOLID, ti.i8)
+            for I in ti.grouped(fine):
+                if fine[I] == FLUID:
+                    coarse[I // 2] = ti.cast(FLUID, ti.i8)
+
+        return coarsen
+
+    def _make_bottom(self):
+        lv = self.n_levels - 1
+        flags, r, z, op = self.flags[lv], self.r[lv], self.z[lv], self._ops[lv]
+        nx, ny, nz = self.shapes[lv]
+        n = nx * ny * nz
+        sweeps = self.bottom_sweeps
+
+        @ti.kernel
+        def bottom():
+            """The coarsest level's solve: z = 0, then symmetric Gauss-Seidel sweeps (forward, then backward in
+            lexicographic order), serially in one launch (the level has a few dozen cells)."""
+            ti.loop_config(serialize=True)
+            for _ in range(1):
+                for i, j, k in ti.ndrange(nx, ny, nz):
+                    z[i, j, k] = 0.0
+                for _s in range(sweeps):
+                    for m2 in range(2 * n):
+                        m = m2 if m2 < n else 2 * n - 1 - m2
+                        I = ti.Vector([m // (ny * nz), (m // nz) % ny, m % nz])
+                        if flags[I] == FLUID:
+                            diag, off = op(z, I)
+                            if diag > 0.0:
+                                z[I] = (r[I] + off) / diag
+
+        return bottom
 
     def _vcycle(self):
         """z[0] = M⁻¹ r[0]: one symmetric V-cycle."""
-        L = self.n_levels
-        for lv in range(L - 1):
-            self._clear(self.z[lv])
-            for _ in range(self.pre_sweeps):
-                self._smooth(self.flags[lv], self.r[lv], self.z[lv], 0)
-                self._smooth(self.flags[lv], self.r[lv], self.z[lv], 1)
-            self._residual_restrict(self.flags[lv], self.r[lv], self.z[lv], self.r[lv + 1])
-        self._bottom(self.flags[L - 1], self.r[L - 1], self.z[L - 1], self.bottom_sweeps)
-        for lv in reversed(range(L - 1)):
-            self._prolong(self.z[lv], self.z[lv + 1])
-            for _ in range(self.post_sweeps):
-                self._smooth(self.flags[lv], self.r[lv], self.z[lv], 1)
-                self._smooth(self.flags[lv], self.r[lv], self.z[lv], 0)
+        for lv in range(self.n_levels - 1):
+            self._down[lv]()
+        self._bottom()
+        for lv in reversed(range(self.n_levels - 1)):
+            self._up[lv]()
 
-    # --- CG vector operations -----------------------------------------------------------------------------
-    @ti.kernel
-    def _dot(self, a: ti.template(), b: ti.template(), slot: ti.i32):
-        self.sums[slot] = 0.0
-        for I in ti.grouped(a):
-            self.sums[slot] += a[I] * b[I]
+    # --- CG, fused vector operations ----------------------------------------------------------------------------
+    def _make_cg(self):
+        flags, x, b, p, Ap, r0, z0 = self.flags[0], self.x, self.b, self.p, self.Ap, self.r[0], self.z[0]
+        op = self._ops[0]
 
-    @ti.kernel
-    def _start(self):
-        """x = 0, r = b (the initial guess is zero: the pressure is not warm-started, so the adjoint solve and
-        the forward solve see the same iteration)."""
-        for I in ti.grouped(self.x):
-            self.x[I] = 0.0
-            self.r[0][I] = self.b[I]
+        @ti.kernel
+        def start() -> ti.f64:
+            """x = 0, r = b; returns b·b (the pressure is not warm-started: the forward and the adjoint solve
+            take the same path)."""
+            bb = ti.f64(0.0)
+            for I in ti.grouped(x):
+                x[I] = 0.0
+                r0[I] = b[I]
+                bb += b[I] * b[I]
+            return bb
 
-    @ti.kernel
-    def _update_xr(self, alpha: ti.f64):
-        for I in ti.grouped(self.x):
-            self.x[I] += alpha * self.p[I]
-            self.r[0][I] -= alpha * self.Ap[I]
+        @ti.kernel
+        def first_direction() -> ti.f64:
+            """p = z; returns r·z."""
+            rz = ti.f64(0.0)
+            for I in ti.grouped(p):
+                p[I] = z0[I]
+                rz += r0[I] * z0[I]
+            return rz
 
-    @ti.kernel
-    def _update_p(self, beta: ti.f64):
-        for I in ti.grouped(self.p):
-            self.p[I] = self.z[0][I] + beta * self.p[I]
+        @ti.kernel
+        def apply_dot() -> ti.f64:
+            """Ap = L p (0 on solid cells); returns p·Ap."""
+            pAp = ti.f64(0.0)
+            for I in ti.grouped(p):
+                v = ti.f64(0.0)
+                if flags[I] == FLUID:
+                    diag, off = op(p, I)
+                    v = diag * p[I] - off
+                Ap[I] = v
+                pAp += p[I] * v
+            return pAp
 
-    @ti.kernel
-    def _copy(self, src: ti.template(), dst: ti.template()):
-        for I in ti.grouped(src):
-            dst[I] = src[I]
+        @ti.kernel
+        def update(alpha: ti.f64) -> ti.f64:
+            """x += α p, r −= α Ap; returns r·r."""
+            rr = ti.f64(0.0)
+            for I in ti.grouped(x):
+                x[I] += alpha * p[I]
+                r0[I] -= alpha * Ap[I]
+                rr += r0[I] * r0[I]
+            return rr
+
+        @ti.kernel
+        def rz_dot() -> ti.f64:
+            rz = ti.f64(0.0)
+            for I in ti.grouped(r0):
+                rz += r0[I] * z0[I]
+            return rz
+
+        @ti.kernel
+        def next_direction(beta: ti.f64):
+            for I in ti.grouped(p):
+                p[I] = z0[I] + beta * p[I]
+
+        @ti.kernel
+        def apply_to(y: ti.template(), out: ti.template()):
+            """out = L y (0 on solid cells), for checks."""
+            for I in ti.grouped(y):
+                v = ti.f64(0.0)
+                if flags[I] == FLUID:
+                    diag, off = op(y, I)
+                    v = diag * y[I] - off
+                out[I] = v
+
+        self._start, self._first_direction, self._apply_dot = start, first_direction, apply_dot
+        self._update, self._rz_dot, self._next_direction, self.apply = update, rz_dot, next_direction, apply_to
 
     # --- compatibility on closed regions ----------------------------------------------------------------------
     def update_flags(self, flags: np.ndarray | None = None):
@@ -204,10 +334,12 @@ class PoissonSolver:
         wall), whose right-hand sides must sum to zero."""
         from scipy import ndimage
 
+        for lv in range(self.n_levels - 1):
+            self._coarsen[lv]()
+        for lv in range(self.n_levels):
+            self._make_masks[lv]()
         if flags is None:
             flags = self.flags[0].to_numpy()
-        for lv in range(self.n_levels - 1):
-            self._coarsen_flags(self.flags[lv], self.flags[lv + 1])
         key = flags.tobytes()
         if key == self._regions_for:
             return
@@ -267,38 +399,29 @@ class PoissonSolver:
     # --- the solve ------------------------------------------------------------------------------------------
     def solve(self, tol: float, max_iterations: int) -> dict:
         """Solve L x = b (b in `self.b`, flags up to date) to ‖r‖ ≤ tol ‖b‖. Returns {"iterations", "residual"
-        (relative, last), "converged", "removed" (‖b's incompatible part‖ / ‖b‖)}."""
+        (relative, last), "converged", "rhs_norm" ‖b‖₂ (after the compatibility), "removed_norm" (‖b's incompatible
+        part‖₂, in closed regions) and "removed" (the same over ‖b‖)}."""
         removed = self.make_compatible()
-        self._start()
-        self._dot(self.b, self.b, 0)
-        bnorm = float(np.sqrt(self.sums[0]))
-        out = {"iterations": 0, "residual": 0.0, "converged": True,
+        bnorm = float(np.sqrt(max(self._start(), 0.0)))
+        out = {"iterations": 0, "residual": 0.0, "converged": True, "rhs_norm": bnorm, "removed_norm": removed,
                "removed": removed / bnorm if bnorm > 0 else 0.0}
         if bnorm == 0.0:
             self.last = out
             return out
         self._vcycle()
-        self._copy(self.z[0], self.p)
-        self._dot(self.r[0], self.z[0], 1)
-        rz = float(self.sums[1])
+        rz = self._first_direction()
         rel = 1.0
         for it in range(1, int(max_iterations) + 1):
-            self._apply(self.flags[0], self.p, self.Ap)
-            self._dot(self.p, self.Ap, 2)
-            pAp = float(self.sums[2])
+            pAp = self._apply_dot()
             if pAp <= 0.0:  # the residual lies in the null space: nothing more to remove
                 break
-            alpha = rz / pAp
-            self._update_xr(alpha)
-            self._dot(self.r[0], self.r[0], 0)
-            rel = float(np.sqrt(self.sums[0])) / bnorm
+            rel = float(np.sqrt(max(self._update(rz / pAp), 0.0))) / bnorm
             out["iterations"] = it
             if rel <= tol:
                 break
             self._vcycle()
-            self._dot(self.r[0], self.z[0], 1)
-            rz_new = float(self.sums[1])
-            self._update_p(rz_new / rz)
+            rz_new = self._rz_dot()
+            self._next_direction(rz_new / rz)
             rz = rz_new
         out["residual"] = rel
         out["converged"] = bool(rel <= tol)
