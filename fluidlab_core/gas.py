@@ -80,6 +80,7 @@ class GasSpec:
     tools_block: bool = True
     particles_block: bool = False
     particle_drag: float = 0.0  # 1/s
+    drag_bodies: tuple | None = None  # names of the particle bodies the gas drags (None: all)
     check_every: int = 1
     sources: list = field(default_factory=list)
 

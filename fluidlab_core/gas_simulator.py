@@ -498,11 +498,55 @@ class GasSimulator:
                 raise KeyError(f"source {name!r} has no parameter {key!r}")
         self.solver.upload_sources()
 
-    # --- pictures --------------------------------------------------------------------------------------------------
+    # --- pictures and viewers ---------------------------------------------------------------------------------------
+    def temperature_range(self) -> tuple[float, float]:
+        """(low, high) K of the temperatures the scene can hold: the initial and ambient ones and the sources'."""
+        spec = self.spec
+        values = [spec.ambient_temperature, spec.initial_temperature or spec.ambient_temperature]
+        values += [s.temperature for s in spec.sources if s.temperature is not None]
+        lo, hi = min(values), max(values)
+        return (lo, hi) if hi > lo else (lo - 1.0, hi + 1.0)
+
     def render(self, path=None, view="iso", size=(800, 600), title=None, field: str = "temperature", slice_axis=2,
-               slice_at=None, **_):
-        """A picture of one slice of a gas field (default: the temperature on the horizontal mid-plane), with the
-        statics and tools drawn as grey cells; see fluidlab_core/render.gas_slice. Writes a PNG if `path`."""
+               slice_at=None, points=None, **_):
+        """A picture of one slice of a gas field (default: the temperature on the horizontal mid-plane, on the
+        scene's fixed colour scale), with the statics and tools drawn as grey cells and `points` (default
+        `self.render_points`, e.g. a task's sensors) as dots; see fluidlab_core/render.gas_slice. Writes a PNG if
+        `path`; returns the (H, W, 3) uint8 image."""
         from fluidlab_core import render
 
-        return render.gas_slice(self, path, field=field, axis=slice_axis, at=slice_at, size=size, title=title)
+        vmin = vmax = None
+        if field == "temperature":
+            vmin, vmax = (t - 273.15 for t in self.temperature_range())
+        pts = points if points is not None else getattr(self, "render_points", None)
+        return render.gas_slice(self, path, field=field, axis=slice_axis, at=slice_at, size=size, title=title,
+                                vmin=vmin, vmax=vmax, points=pts)
+
+    def _slice_cells(self) -> np.ndarray:
+        """Flat indices of the gas cells of the horizontal mid-plane (what viewers draw)."""
+        nx, ny, nz = self.solver.shape
+        k = nz // 2
+        idx = np.arange(nx * ny * nz).reshape(nx, ny, nz)[:, :, k].ravel()
+        return idx[~self.solid().reshape(-1)[idx]]
+
+    def positions(self, h=None) -> np.ndarray:
+        """For viewers (sim_node's ~/particles, recordings): the centres (M, 3) m of the gas cells on the
+        horizontal mid-plane; their colours, the temperature's, are `particle_colors()`. A gas scene has no
+        particles, so `h` must be None."""
+        if h is not None:
+            raise KeyError("a gas scene has no particle bodies")
+        return self.cell_centers().reshape(-1, 3)[self._slice_cells()]
+
+    def velocities(self, h=None) -> np.ndarray:
+        if h is not None:
+            raise KeyError("a gas scene has no particle bodies")
+        return self.gas_velocity().reshape(-1, 3)[self._slice_cells()]
+
+    def particle_colors(self) -> np.ndarray:
+        """(M, 3) uint8 colours of `positions()`: the temperature on the scene's scale (blue cool, red warm)."""
+        import matplotlib
+
+        lo, hi = self.temperature_range()
+        t = (self.gas_field("temperature").reshape(-1)[self._slice_cells()] - lo) / (hi - lo)
+        rgb = matplotlib.colormaps["coolwarm"](np.clip(t, 0.0, 1.0))[:, :3]
+        return (255 * rgb).astype(np.uint8)

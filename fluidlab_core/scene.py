@@ -288,7 +288,7 @@ class Scene:
                 advection: str = "maccormack", tolerance: float = 1e-6, max_iterations: int = 200,
                 on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
                 statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
-                particle_drag: float = 0.0, check_every: int = 1):
+                particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1):
         """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
         equations). A scene with gas and no particles builds a GasSimulator (fluidlab_core/gas_simulator.py).
 
@@ -304,7 +304,9 @@ class Scene:
         cross in one gas step (checked at build from the sources' speeds and every step from the flow). scalars:
         names of extra advected scalars. substeps: gas steps per scene step. statics_block / tools_block /
         particles_block: which solids the gas flows around (particles: MPM cells at least half full move the gas
-        with them); particle_drag: 1/s, the drag of the gas on particles (0: none)."""
+        with them); particle_drag: 1/s, the rate at which the gas drags particles towards its velocity (0: none),
+        on the particle bodies named in drag_bodies (default all), which ride in the gas and do not block it:
+        engine/gas_coupling.py."""
         from fluidlab_core.gas import ADVECTIONS, GasSpec, _number, parse_walls
 
         if self.gas is not None:
@@ -351,7 +353,8 @@ class Scene:
             advection=advection, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
             max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
             statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
-            particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every))
+            particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every),
+            drag_bodies=None if drag_bodies is None else tuple(str(b) for b in drag_bodies))
         return self.gas
 
     def add_gas_source(self, name: str | None = None, shape: str = "box", size=(0.01, 0.01, 0.01),
@@ -561,15 +564,32 @@ class Scene:
             diff = DiffSolver(model, steps * self.substeps + 1, scatter_copies=copies)
         model.upload()
         state.write(0, model.initial_state())
-        return Simulator(self, model, solver, state, handles, config, diff=diff)
+        sim = Simulator(self, model, solver, state, handles, config, diff=diff)
+        if self.gas is not None:
+            from fluidlab_core.engine.gas_coupling import GasParticleCoupling
+
+            gas = self._gas_solver(requires_grad=False)
+            names = self.gas.drag_bodies
+            rows = None
+            if self.gas.particle_drag > 0:
+                chosen = [h for h in handles if names is None or h.name in names]
+                rows = np.concatenate([np.arange(h.start, h.start + h.count) for h in chosen]) if chosen else None
+            sim.attach_gas(gas, GasParticleCoupling(gas, model, rows, self.gas.particle_drag))
+        return sim
 
     def _build_gas(self, requires_grad: bool):
         """A GasSimulator for a scene with gas and no particles."""
         from fluidlab_core import runtime
-        from fluidlab_core.engine.gas import GasSolver
         from fluidlab_core.gas_simulator import GasSimulator
 
         config = runtime.ensure_init()
+        return GasSimulator(self, self.gas, self._gas_solver(requires_grad), config)
+
+    def _gas_solver(self, requires_grad: bool):
+        """The gas's solver, with the statics rasterised on the host."""
+        from fluidlab_core import runtime
+        from fluidlab_core.engine.gas import GasSolver
+
         real = runtime.real_dtype()
         g = self.gas
         static = np.zeros(g.shape, dtype=np.int8)
@@ -582,5 +602,4 @@ class Scene:
             static = inside.reshape(g.shape).astype(np.int8)
         if not np.any(static == 0):
             raise ValueError("the statics fill the whole gas box: no cell holds gas")
-        solver = GasSolver(g, real, tool_specs=self.tools, static_solid=static, needs_grad=requires_grad)
-        return GasSimulator(self, g, solver, config)
+        return GasSolver(g, real, tool_specs=self.tools, static_solid=static, needs_grad=requires_grad)

@@ -42,6 +42,8 @@ class Simulator:
         self._static_points = None  # sampled statics for pictures, made on first render
         self._tool_points = None  # tool shapes sampled in their own frames, likewise
         self._compiled = set()  # which solvers have run (their first run compiles their kernels)
+        self.gas = None  # engine/gas.GasSolver in a scene with gas and particles (attach_gas)
+        self.gas_coupling = None
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -228,6 +230,10 @@ class Simulator:
                                 f"{type(term).__name__}")
         twists = self._action_sequence(actions)
         if grad:
+            if self.gas is not None:
+                raise NotImplementedError("gradients through the coupling of gas and particles are not implemented: "
+                                          "rollout(grad=True) runs on scenes of particles alone or gas alone "
+                                          "(engine/gas_coupling.py)")
             if self.diff is None:
                 raise RuntimeError("this simulator was built without gradients: build(requires_grad=True) to "
                                    "call rollout(..., grad=True)")
@@ -261,7 +267,7 @@ class Simulator:
         applied, clipped = T.plan(self.tool_specs, position, twists, self.dt, self.substeps)
         start = self.step_count
         stepper = loop.FastStepper(self.solver, self.state, self.dt, self.check_finite_every, self._raise_nonfinite,
-                                   first_step=start)
+                                   first_step=start, after_step=self._gas_step if self.gas is not None else None)
 
         def tick(phase, done, total):
             self.step_count = start + done
@@ -272,6 +278,42 @@ class Simulator:
             values, _ = loop.run(stepper, applied, losses, emit_on=on, step_offset=step_offset, horizon=horizon,
                                  progress=tick)
         return clipped, values, blocked
+
+    # --- gas (a scene with particles and gas: engine/gas_coupling.py) --------------------------------------------
+    def attach_gas(self, gas, coupling):
+        """Step `gas` (a GasSolver) after every step, coupled to the particles by `coupling`."""
+        self.gas, self.gas_coupling = gas, coupling
+        gas.write_state(gas.initial_state())
+        self._gas_start = gas.read_state()
+
+    def _gas_step(self, step: int, twist: np.ndarray):
+        """The gas's step after the particles' (operator splitting, engine/gas_coupling.py)."""
+        gas, cp = self.gas, self.gas_coupling
+        if self.tool_specs:
+            p, R = self.state.read_tools(0)
+            gas.set_tools(p, R, twist[:, :3], twist[:, 3:])
+        sub_dt = self.dt / gas.spec.substeps
+        particles = (lambda: cp.particles_to_gas(self.state)) if gas.spec.particles_block else None
+        for j in range(gas.spec.substeps):
+            gas.step(sub_dt, step * gas.spec.substeps + j, particles=particles)
+        cp.gas_to_particles(self.state, self.dt)
+
+    def gas_state(self):
+        """The gas's state (fluidlab_core.gas.GasState) in a scene with particles and gas."""
+        if self.gas is None:
+            raise ValueError("this scene has no gas (Scene.add_gas)")
+        return self.gas.read_state()
+
+    def set_gas_state(self, state=None):
+        """Set the gas's state (None: its start); get_state/set_state cover the particles and tools only."""
+        if self.gas is None:
+            raise ValueError("this scene has no gas (Scene.add_gas)")
+        self.gas.write_state(self._gas_start if state is None else state)
+
+    def gas_field(self, name: str) -> np.ndarray:
+        from fluidlab_core.gas import GasView
+
+        return GasView.of(self.gas_state(), self.gas.spec, self.gas.solid.to_numpy() != 0).field(name)
 
     def _first_run(self, solver: str, what: str):
         """runtime.compiling around a solver's first run (which compiles its kernels), nothing afterwards."""

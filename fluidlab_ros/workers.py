@@ -111,16 +111,20 @@ def fluid_worker(task_name: str, size: str, inbox, out, arch: str = "cpu", preci
         start = sim.get_state()
         sim.step()
         sim.set_state(start)
-        out.put({"kind": "ready", "dt": dt, "n": int(sim.n_particles),
+        out.put({"kind": "ready", "dt": dt, "n": int(len(sim.positions())),
                  "compile_seconds": time.perf_counter() - t0, **scene_description(sim)})
         step, stamp, current = 0, None, 0
         from fluidlab_ros.replay import tracking_twist
 
         colors = sim.particle_colors()
+        changing = getattr(sim, "spec", None) is not None  # a gas scene: its points' colours are its temperature
 
         def publish(**extra):
             # the particles that take part (of a body being emitted: those that have left the nozzle), with
-            # their colours
+            # their colours; a gas scene's points and colours come from the simulator (GasSimulator.positions)
+            nonlocal colors
+            if changing:
+                colors = sim.particle_colors()
             active = sim.active_rows()
             out.put({"kind": "particles", "positions": sim.positions().astype(np.float32), "step": step,
                      "stamp": stamp, "epoch": current,

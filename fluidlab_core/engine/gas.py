@@ -334,11 +334,11 @@ class GasSolver:
             kind = ti.cast(0, ti.i8)
             vs = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
             if self.static_solid[I] != 0:
-                kind = 1
+                kind = ti.cast(1, ti.i8)
             for t in ti.static(range(len(self._tool_sdf))):
                 q = self.tool_R[t].transpose() @ (x - self.tool_p[t])
                 if self._tool_sdf[t](q) < 0.0:
-                    kind = 2
+                    kind = ti.cast(2, ti.i8)
                     vs = self.tool_v[t] + self.tool_w[t].cross(x - self.tool_p[t])
             self.solid[I] = kind
             self.solid_v[I] = vs
@@ -349,7 +349,7 @@ class GasSolver:
         mean velocity (coupling, MPM → gas)."""
         for I in ti.grouped(self.solid):
             if self.solid[I] == 0 and self.cell_m[I] >= threshold:
-                self.solid[I] = 3
+                self.solid[I] = ti.cast(3, ti.i8)
                 self.solid_v[I] = self.cell_mv[I]
 
     @ti.kernel
@@ -358,7 +358,7 @@ class GasSolver:
             self.poisson.flags[0][I] = ti.cast(FLUID if self.solid[I] == 0 else SOLID, ti.i8)
 
     @ti.kernel
-    def sources_stage(self, a: ti.template(), b: ti.template(), dt: ti.f64):
+    def sources_stage(self, a: ti.template(), b: ti.template(), dt: ti.template()):
         """Stage b from stage a: the sources blend velocity and scalars, faces at solids take their velocity."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[a][d]):
@@ -420,7 +420,7 @@ class GasSolver:
         return self._src_weight[s](R.transpose() @ (x - p))
 
     @ti.kernel
-    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.f64, keep: ti.template()):
+    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(), keep: ti.template()):
         """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
         traces forward). With `keep`, the range of the 8 values each point interpolated goes to Vlo/Vhi, Qlo/Qhi
         (MacCormack's clamp)."""
@@ -523,7 +523,7 @@ class GasSolver:
             self.f_vort[I] = f
 
     @ti.kernel
-    def forces(self, a: ti.template(), qa: ti.template(), b: ti.template(), dt: ti.f64):
+    def forces(self, a: ti.template(), qa: ti.template(), b: ti.template(), dt: ti.template()):
         """Stage b = stage a + Δt (buoyancy + vorticity confinement + ν ∇²u) on the faces."""
         shape = ti.static(self.shape)
         beta = ti.static(self.spec.beta())

@@ -56,16 +56,20 @@ class FastStepper:
     """The fast solver on a one-slot StateBuffer, one step per block. `check_every`: steps between NaN checks
     (0: never); `on_nonfinite(fields, particle, step)` raises the caller's error."""
 
-    def __init__(self, solver, state, dt: float, check_every: int = 0, on_nonfinite=None, first_step: int = 0):
+    def __init__(self, solver, state, dt: float, check_every: int = 0, on_nonfinite=None, first_step: int = 0,
+                 after_step=None):
         self.solver, self.state, self.dt = solver, state, dt
         self.check_every, self.on_nonfinite = int(check_every), on_nonfinite
         self.first_step = first_step  # steps taken before the rollout (the NaN check counts from the start)
         self.block_steps = 1
+        self.after_step = after_step  # after_step(g, twists): what else a step does (the gas of a coupled scene)
 
     def run_block(self, block: range, applied: np.ndarray, emit_on=None, progress=None, phase: str = "forward",
                   b: int = 0):
         for j, g in enumerate(block):
             self.solver.step(self.state, Control(applied[j], None if emit_on is None else emit_on[j]))
+            if self.after_step is not None:
+                self.after_step(self.first_step + g, applied[j])
             if progress:
                 progress(phase, g + 1, None)
 

@@ -1,7 +1,7 @@
 """The task registry: `names()`, `make(name, size)` and `register(...)` for tasks of your own.
 
 Each task is a class in a module of its family (cup_tasks: LatteArtStir, Mixing; gathering: GatheringEasy,
-GatheringHard); variants of a family are the same class with a parameter. Making a task compiles nothing: its
+GatheringHard; pour_tasks, jet_and_glass; air_circulation: AirCirculation, the gas task); variants of a family are the same class with a parameter. Making a task compiles nothing: its
 simulators are built on first use (`Task.simulator()`).
 
 Tasks of your own (docs/extending.md) join the registry, and with it the Gymnasium ids
@@ -74,11 +74,11 @@ def unregister(name: str):
 
 
 def _builtin():
-    from fluidlab_core.tasks import cup_tasks, gathering, jet_and_glass, pour_tasks
+    from fluidlab_core.tasks import air_circulation, cup_tasks, gathering, jet_and_glass, pour_tasks
 
     for cls in (cup_tasks.LatteArtStir, cup_tasks.Mixing, gathering.GatheringEasy, gathering.GatheringHard,
                 pour_tasks.LatteArtPour, pour_tasks.IceCreamStatic, pour_tasks.IceCreamDynamic,
-                jet_and_glass.Transporting, jet_and_glass.Pouring):
+                jet_and_glass.Transporting, jet_and_glass.Pouring, air_circulation.AirCirculation):
         register(cls)
 
 

@@ -1,0 +1,129 @@
+"""The Air Circulation task (fluidlab_core/tasks/air_circulation.py), the paper's gas task: its sizes, a rollout, the
+Gymnasium environment, the gradient its optimisers use, and its shipped trajectory."""
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fluidlab_core import tasks
+from fluidlab_core.tasks import air_circulation as air
+from tests.conftest import report
+
+NAME = "AirCirculation"
+_TASK: dict = {}
+
+
+def small():
+    """One small task for the module: a task keeps its simulators, whose kernels compile once."""
+    if "small" not in _TASK:
+        _TASK["small"] = tasks.make(NAME, "small")
+    return _TASK["small"]
+
+
+def test_sizes_follow_the_paper_and_keep_the_episode():
+    """The paper's gas grid is 128 cells across the house and 9 high (its 128 × 9 × 128); every size runs the same
+    6 s episode, and each step's CFL number for the 1 m/s jet stays under the task's max_cfl."""
+    for size, cells in (("small", 40), ("medium", 64), ("paper", 128)):
+        task = tasks.make(NAME, size)
+        scene = task.scene()
+        g = scene.gas
+        assert g.shape[0] == cells and task.horizon * task.dt == pytest.approx(6.0)
+        assert scene.gas_limits()["cfl"] <= g.max_cfl
+        sensors = task.sensors()
+        assert sorted(sensors) == ["lower_left", "right", "upper_left"] and all(len(p) == 9 for p in sensors.values())
+    assert tasks.make(NAME, "paper").scene().gas.shape == (128, 87, 9)
+
+
+def test_builds_steps_observes_and_resets():
+    """The house holds its rooms and walls, the air conditioner turns in place, the vent cools the air (the
+    hall's mean temperature falls, nothing leaves the range T_COOL … T_WARM), the observation has its documented
+    size, and reset restores the start exactly."""
+    task = small()
+    sim = task.simulator()
+    task.reset(sim)
+    start = sim.get_state()
+    obs0 = task.observe(sim)
+    assert obs0.shape == (task.observation_size(),) == (205,) and obs0.dtype == np.float32
+    np.testing.assert_allclose(obs0[-13:-6], task.initial_tool_pose(), atol=1e-6)
+    for _ in range(40):
+        sim.step(task.twists(np.array([[1.0]]))[0])
+    pose = sim.tool_pose(task.tool_name)
+    np.testing.assert_allclose(pose[:3], task.initial_tool_pose()[:3], atol=1e-12)  # it only turns
+    yaw = 2 * np.arctan2(pose[5], pose[6])
+    assert yaw == pytest.approx(40 * task.dt * 1.0, abs=1e-6)
+    T = sim.gas_field("temperature")
+    gas = ~sim.solid()
+    assert T[gas].min() >= air.T_COOL - 1e-3 and T[gas].max() <= air.T_WARM + 1e-3
+    assert T[gas].mean() < air.T_WARM - 0.1
+    out = task.evaluate(np.zeros((task.horizon, 1)))
+    assert np.isfinite(out["loss"]) and len(out["rewards"]) == task.horizon
+    assert 5.0 < out["loss"] < 8.0  # K per sensor: 8 K at the start, the hall's cool air reaches a few sensors
+    task.reset(sim)
+    again = sim.get_state()
+    for a, b in zip(again.gas.velocity, start.gas.velocity):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(again.tool_rotation, start.tool_rotation)
+
+
+def test_the_gymnasium_environment_passes_the_checker():
+    from gymnasium.utils.env_checker import check_env
+
+    from fluidlab_core.envs import FluidLabEnv
+
+    env = FluidLabEnv(NAME, render_mode="rgb_array", task=small())
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value.*")
+        check_env(env.unwrapped, skip_render_check=False)
+    obs, _ = env.reset(seed=0)
+    total = 0.0
+    for _ in range(10):
+        obs, reward, terminated, truncated, info = env.step(np.array([0.5], dtype=np.float32))
+        total += reward
+    assert obs.shape == (205,) and np.isfinite(total) and "task_loss" in info
+    frame = env.render()
+    assert frame.shape == (240, 320, 3) and frame.std() > 1
+
+
+def test_the_task_gradient_points_downhill():
+    """DP's gradient of the task loss with respect to the yaw rates (float32, the task's own physics): a step
+    against it lowers the loss, and a directional derivative agrees with a central difference within 5 % (float32
+    sums over 60 steps; the float64 check of every gradient path is tests/test_gas.py)."""
+    task = small()
+    sim = task.simulator(grad=True)
+    n = 60
+    rng = np.random.default_rng(1)
+    actions = 0.8 + 0.2 * rng.standard_normal((n, 1))
+    loss = task.loss(n)
+    task.reset(sim)
+    res = sim.rollout(task.twists(actions), loss, grad=True)
+    g = res.grad_actions[:, 0, 5]
+    d = g / np.linalg.norm(g)
+    eps = 0.05
+
+    def at(a):
+        task.reset(sim)
+        return sim.rollout(task.twists(a), loss).loss
+
+    fd = (at(actions + eps * d[:, None]) - at(actions - eps * d[:, None])) / (2 * eps)
+    an = float(g @ d)
+    report("AirCirculation gradient", loss=res.loss, finite_difference=fd, backward=an)
+    assert an > 0 and abs(fd - an) < 0.05 * abs(an)
+    assert at(actions - 0.2 * d[:, None]) < res.loss
+
+
+def test_shipped_trajectory_reproduces_its_loss_and_beats_the_still_tool():
+    from fluidlab_core.trajectory import Trajectory
+
+    root = Path(__file__).resolve().parents[1] / "trajectories" / NAME
+    files = sorted(root.glob("*_small.json"))
+    assert len(files) == 1, files
+    assert files[0].with_suffix(".mp4").stat().st_size > 10_000
+    traj = Trajectory.load(files[0])
+    task = small()
+    actions, position = task.actions_from_trajectory(traj)
+    loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
+    still = task.evaluate(np.zeros_like(actions), rewards=False)["loss"]
+    report("AirCirculation shipped", loss=loss, still=still, recorded=traj.metadata["final_loss"])
+    assert loss == pytest.approx(traj.metadata["final_loss"], rel=1e-3)
+    assert loss < still
