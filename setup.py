@@ -37,6 +37,8 @@ COLCON = ["colcon-core==0.21.3", "colcon-ros==0.5.0", "colcon-python-setup-py==0
           "colcon-package-information==0.4.1"]
 # ray: the optimiser benchmark's job scheduler (fluidlab_core/benchmark.py; without it runs go to a process pool).
 BENCH = ["ray==2.60.0"]
+# phiflow: bench/bench_gas.py times PhiFlow's smoke plume beside ours (not needed by the package or its tests).
+PHIFLOW = ["phiflow==3.4.0", "phiml==1.16.1"]
 # rl: the benchmark's SAC and PPO baselines (fluidlab_core/optim/rl.py). torch 2.13.0 is pinned to its CPU build
 # (about 750 MB installed; `pip install torch==2.13.0` takes the CPU wheel where one is on disk). torch needs
 # setuptools >= 77.0.3 and colcon-core < 80: 79.0.1 satisfies both.
@@ -56,7 +58,7 @@ setup(
                   "fluidlab_core.tasks": ["data/*.npz"]},
     python_requires=">=3.11",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": TEST_REQUIRES, "bench": [*BENCH, *RL], "rl": RL},
+    extras_require={"test": TEST_REQUIRES, "bench": [*BENCH, *RL, *PHIFLOW], "rl": RL},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -392,8 +392,8 @@ class GasSimulator:
                         gth += rotation_tangent_grad(dR, rot[g + 1])
                         dev_v += dv
                         dev_w += dw
-                bad = [name for name, f in (("velocity", cv[0]), ("velocity", cv[1]), ("velocity", cv[2]),
-                                            ("scalars", cq)) if not np.all(np.isfinite(f.to_numpy()))]
+                flags = s.carry_finite(cv[0], cv[1], cv[2], cq)
+                bad = [name for bit, name in ((1, "velocity"), (2, "scalars")) if flags & bit]
                 if bad or not (np.all(np.isfinite(gp)) and np.all(np.isfinite(gth))):
                     raise NonFiniteGradientError(f"the gas gradient became NaN or infinite in {', '.join(bad) or 'the tool poses'} "
                                                  f"going back through step {g + 1}")

@@ -1,0 +1,188 @@
+"""Gas solver throughput: a smoke plume at 64³ and 128³, forward and forward + backward, beside PhiFlow solving the
+same plume to the same pressure tolerance in the same process.
+
+    python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow]
+
+The plume (both solvers): a closed cube of side 0.5 m, a heater (a sphere of radius 0.05 m centred 0.05 m above the
+floor) that sets the temperature excess to 30 K inside it every step, Boussinesq buoyancy a = g β ΔT with
+β = 1/293.15 K, MacCormack advection of the temperature and of the velocity, a pressure projection to a relative
+residual of 1e-6, dt = 0.02 s. Ours also carries a smoke density (its second scalar); PhiFlow carries one scalar.
+Ours: fluidlab_core's GasSimulator (MGPCG). PhiFlow: `phiflow` (3.4) with its numpy backend for the forward and
+its torch backend for the gradient (numpy has no autodiff), `Solve('CG', 1e-6, 0)` for the pressure.
+
+Forward + backward: the gradient of a linear functional of the final temperature with respect to the initial
+velocity over the same steps (ours: rollout(grad=True); PhiFlow: math.gradient on the torch backend).
+
+Also measured: the projection's cost against one V-cycle of our multigrid per digit of residual reduction (the
+issue's bar: within 3×), i.e. (seconds per pressure solve) / (seconds per V-cycle × 6 digits).
+
+Each figure is the median over the timed steps after one warm-up step (which compiles); both solvers run with
+`--threads` CPU threads. Results: bench/results/gas_<arch>.txt and .json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+L = 0.5
+DT = 0.02
+T_AMB = 293.15
+HEAT = 30.0
+TOL = 1e-6
+
+
+def ours(n: int, steps: int, grad_steps: int, arch: str, threads: int) -> dict:
+    import fluidlab_core as fl
+    from fluidlab_core import losses
+
+    fl.init(arch=arch, precision="f32", cpu_threads=threads)
+    out = {}
+    for grad in (False, True):
+        scene = fl.Scene(lower=(0, 0, 0), upper=(L, L, L), grid_res=n, dt=DT)
+        scene.add_gas(resolution=n, tolerance=TOL, max_iterations=500)
+        scene.add_gas_source("heater", "disc", (0.05, 0.05), pose=(L / 2, L / 2, 0.05, 0, 0, 0, 1),
+                             temperature=T_AMB + HEAT, smoke=0.01)
+        sim = scene.build(requires_grad=grad)
+        if not grad:
+            sim.step()  # compiles
+            times = []
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                sim.step()
+                times.append(time.perf_counter() - t0)
+            rep = sim.solver.poisson.last
+            # the projection against one V-cycle: time both on the current state
+            s = sim.solver
+            s.prepare_boundaries()
+            s.forward_stages(DT)
+            t0 = time.perf_counter()
+            s.project(DT, 0)
+            t_solve = time.perf_counter() - t0
+            p = s.poisson
+            for _ in range(2):
+                p._vcycle()
+            t0 = time.perf_counter()
+            for _ in range(5):
+                p._vcycle()
+            t_v = (time.perf_counter() - t0) / 5
+            out.update(forward_s=float(np.median(times)), iterations=rep["iterations"], residual=rep["residual"],
+                       solve_s=t_solve, vcycle_s=t_v, solve_per_vcycle_digit=t_solve / (t_v * 6))
+        else:
+            w = np.random.default_rng(0).standard_normal(sim.solver.shape)
+            loss = losses.GasLinear({"temperature": w})
+            start = sim.get_state()
+            sim.rollout(1, loss, grad=True)  # compiles forward and backward
+            sim.set_state(start)
+            t0 = time.perf_counter()
+            sim.rollout(grad_steps, loss, grad=True)
+            out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
+    return out
+
+
+def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    out = {}
+    g_beta = 9.81 / T_AMB
+    for backend in ("numpy", "torch"):
+        if backend == "numpy":
+            from phi import flow as pf
+        else:
+            import torch
+
+            torch.set_num_threads(threads)
+            from phi.torch import flow as pf
+        box = pf.Box(x=L, y=L, z=L)
+        heater = pf.Sphere(x=L / 2, y=L / 2, z=0.05, radius=0.05)
+        mask = pf.resample(heater, to=pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), soft=True)
+
+        def step(v, t, p):
+            t = pf.advect.mac_cormack(t, v, DT)
+            t = t * (1 - mask) + HEAT * mask
+            buoyancy = pf.resample(t * (0, 0, g_beta), to=v)
+            v = pf.advect.mac_cormack(v, v, DT) + buoyancy * DT
+            v, p = pf.fluid.make_incompressible(v, (), pf.Solve("CG", TOL, 0, x0=p, max_iterations=2000))
+            return v, t, p
+
+        v = pf.StaggeredGrid(0, 0, x=n, y=n, z=n, bounds=box)
+        t = pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box)
+        p = None
+        if backend == "numpy":
+            v, t, p = step(v, t, p)  # warm-up
+            times = []
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                v, t, p = step(v, t, p)
+                times.append(time.perf_counter() - t0)
+            out["forward_s"] = float(np.median(times))
+        else:
+            w = pf.math.random_normal(t.values.shape)
+
+            def loss_of(v0):
+                vv, tt, pp = v0, pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), None
+                for _ in range(grad_steps):
+                    vv, tt, pp = step(vv, tt, pp)
+                return pf.math.sum(tt.values * w)
+
+            grad_fn = pf.math.gradient(loss_of, "v0", get_output=False)
+            v0 = pf.StaggeredGrid(0, 0, x=n, y=n, z=n, bounds=box)
+            t0 = time.perf_counter()
+            grad_fn(v0)
+            out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
+    ap.add_argument("--steps", type=int, nargs="+", default=[8, 3], help="timed forward steps per size")
+    ap.add_argument("--grad-steps", type=int, nargs="+", default=[4, 2], help="steps of the gradient rollout per size")
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-phiflow", action="store_true")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    rows = []
+    for i, n in enumerate(args.sizes):
+        steps = args.steps[min(i, len(args.steps) - 1)]
+        gsteps = args.grad_steps[min(i, len(args.grad_steps) - 1)]
+        row = {"n": n, "ours": ours(n, steps, gsteps, args.arch, args.threads)}
+        print(f"{n}³ ours: {row['ours']}", flush=True)
+        if not args.no_phiflow:
+            row["phiflow"] = phiflow(n, steps, gsteps, args.threads)
+            print(f"{n}³ PhiFlow: {row['phiflow']}", flush=True)
+        rows.append(row)
+    lines = [f"Smoke plume, {L} m cube, dt {DT} s, pressure to a relative residual of {TOL:g}; {args.arch}, "
+             f"{args.threads} thread(s); seconds per step (median), steps/s in brackets; ratio = PhiFlow / ours "
+             f"(above 1: ours faster).", ""]
+    lines.append(f"{'grid':>6} {'ours fwd':>16} {'PhiFlow fwd':>16} {'ratio':>6} {'ours fwd+bwd':>16} "
+                 f"{'PhiFlow fwd+bwd':>16} {'ratio':>6} {'MGPCG iters':>11} {'solve / (V-cycle x 6)':>22}")
+    for r in rows:
+        o, p = r["ours"], r.get("phiflow", {})
+
+        def cell(x):
+            return f"{x:8.3f} ({1 / x:5.2f})" if x else f"{'-':>16}"
+
+        rf = p.get("forward_s", 0) / o["forward_s"] if p else 0
+        rb = p.get("forward_backward_s", 0) / o["forward_backward_s"] if p else 0
+        lines.append(f"{r['n']:>5}³ {cell(o['forward_s'])} {cell(p.get('forward_s'))} {rf:6.2f} "
+                     f"{cell(o['forward_backward_s'])} {cell(p.get('forward_backward_s'))} {rb:6.2f} "
+                     f"{o['iterations']:>11} {o['solve_per_vcycle_digit']:>22.2f}")
+    text = "\n".join(lines)
+    print(text)
+    out = Path(args.out or ROOT / "bench" / "results" / f"gas_{args.arch}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".txt").write_text(text + "\n")
+    out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
