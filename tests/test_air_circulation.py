@@ -127,3 +127,49 @@ def test_shipped_trajectory_reproduces_its_loss_and_beats_the_still_tool():
     report("AirCirculation shipped", loss=loss, still=still, recorded=traj.metadata["final_loss"])
     assert loss == pytest.approx(traj.metadata["final_loss"], rel=1e-3)
     assert loss < still
+
+
+def test_the_twin_worker_publishes_the_gas_coloured_by_temperature():
+    """sim_node's fluid worker (fluidlab_ros/workers.py, in its own process as the node runs it) on the gas task:
+    it reports the scene (walls, the air conditioner) and publishes the gas's mid-plane as points coloured by
+    temperature, whose colours change as the conditioner blows (the twin of a gas task in RViz/Foxglove)."""
+    import multiprocessing as mp
+    import queue
+
+    from fluidlab_ros.workers import fluid_worker
+
+    ctx = mp.get_context("spawn")
+    inbox, out, stop = ctx.Queue(), ctx.Queue(), ctx.Event()
+    proc = ctx.Process(target=fluid_worker, args=(NAME, "small", inbox, out), kwargs={"nice": 0, "stop": stop},
+                       daemon=True)
+    proc.start()
+    try:
+        msgs = []
+
+        def until(kind, timeout=600):
+            while True:
+                m = out.get(timeout=timeout)
+                msgs.append(m)
+                assert m["kind"] != "error", m.get("traceback")
+                if m["kind"] == kind:
+                    return m
+
+        ready = until("ready")
+        assert ready["n"] > 100 and len(ready["statics"]) == 6 and ready["tools"][0][0] == "air_conditioner"
+        inbox.put({"kind": "reset"})
+        first = until("particles")
+        pose = small().initial_tool_pose()
+        for k in range(10):
+            inbox.put({"kind": "pose", "pose": pose, "last": k == 9})
+        last = until("particles")
+        while True:  # the last publication after the tenth pose
+            try:
+                last = out.get(timeout=5)
+            except queue.Empty:
+                break
+        assert first["positions"].shape == last["positions"].shape and first["positions"].shape[1] == 3
+        assert first["colors"].dtype == np.uint8 and first["colors"].shape == first["positions"].shape
+        assert np.abs(first["colors"].astype(int) - last["colors"].astype(int)).max() > 20
+    finally:
+        stop.set()
+        proc.join(timeout=30)
