@@ -7,8 +7,10 @@ The plume (both solvers): a closed cube of side 0.5 m, a heater (a sphere of rad
 floor) that sets the temperature excess to 30 K inside it every step, Boussinesq buoyancy a = g β ΔT with
 β = 1/293.15 K, MacCormack advection of the temperature and of the velocity, a pressure projection to a relative
 residual of 1e-6, dt = 0.02 s. Ours also carries a smoke density (its second scalar); PhiFlow carries one scalar.
-Ours: fluidlab_core's GasSimulator (MGPCG). PhiFlow: `phiflow` (3.4) with its numpy backend for the forward and
-its torch backend for the gradient (numpy has no autodiff), `Solve('CG', 1e-6, 0)` for the pressure.
+Ours: fluidlab_core's GasSimulator (MGPCG; fields float32, the solve float64). PhiFlow: `phiflow` (3.4) on its
+torch backend in float64 (its float32 CG does not reach 1e-6: it stalled at 2e-5 after 2000 iterations at 64³),
+`Solve('CG', 1e-6, 0)` for the pressure (unpreconditioned CG on an explicit sparse matrix). At 128³ a PhiFlow step
+takes minutes, so it is timed over fewer steps (--phiflow-steps) and its gradient only at 64³ by default.
 
 Forward + backward: the gradient of a linear functional of the final temperature with respect to the initial
 velocity over the same steps (ours: rollout(grad=True); PhiFlow: math.gradient on the torch backend).
@@ -89,54 +91,62 @@ def ours(n: int, steps: int, grad_steps: int, arch: str, threads: int) -> dict:
 
 
 def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
-    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    """PhiFlow's plume on its torch backend in float64 (float32 CG stalled at a max residual of 2e-5 after 2000
+    iterations at 64³, short of 1e-6). `steps` 0 or `grad_steps` 0 skip that part."""
+    import torch
+
+    torch.set_num_threads(threads)
+    from phi.torch import flow as pf
+    from phiml.backend._numpy_backend import NumPyBackend
+
+    # phiml 1.16.1 casts the flat indices of its sparse Poisson matrix back to int32: from 64³ cells (2^36
+    # entries) they overflow ("index -2147479552 is out of bounds"); keep them int64
+    if not getattr(NumPyBackend, "_ravel_int64", False):
+        orig = NumPyBackend.ravel_multi_index
+        NumPyBackend.ravel_multi_index = lambda self, mi, shape, mode="undefined": orig(
+            self, np.asarray(mi, dtype=np.int64), shape, mode)
+        NumPyBackend._ravel_int64 = True
+    pf.math.set_global_precision(64)
     out = {}
     g_beta = 9.81 / T_AMB
-    for backend in ("numpy", "torch"):
-        if backend == "numpy":
-            from phi import flow as pf
-        else:
-            import torch
+    box = pf.Box(x=L, y=L, z=L)
+    heater = pf.Sphere(x=L / 2, y=L / 2, z=0.05, radius=0.05)
+    mask = pf.resample(heater, to=pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), soft=True)
 
-            torch.set_num_threads(threads)
-            from phi.torch import flow as pf
-        box = pf.Box(x=L, y=L, z=L)
-        heater = pf.Sphere(x=L / 2, y=L / 2, z=0.05, radius=0.05)
-        mask = pf.resample(heater, to=pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), soft=True)
+    def step(v, t, p):
+        t = pf.advect.mac_cormack(t, v, DT)
+        t = t * (1 - mask) + HEAT * mask
+        buoyancy = pf.resample(t * (0, 0, g_beta), to=v)
+        v = pf.advect.mac_cormack(v, v, DT) + buoyancy * DT
+        v, p = pf.fluid.make_incompressible(v, (), pf.Solve("CG", TOL, 0, x0=p, max_iterations=5000))
+        return v, t, p
 
-        def step(v, t, p):
-            t = pf.advect.mac_cormack(t, v, DT)
-            t = t * (1 - mask) + HEAT * mask
-            buoyancy = pf.resample(t * (0, 0, g_beta), to=v)
-            v = pf.advect.mac_cormack(v, v, DT) + buoyancy * DT
-            v, p = pf.fluid.make_incompressible(v, (), pf.Solve("CG", TOL, 0, x0=p, max_iterations=2000))
-            return v, t, p
+    def fresh():
+        return (pf.StaggeredGrid(0, 0, x=n, y=n, z=n, bounds=box),
+                pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), None)
 
-        v = pf.StaggeredGrid(0, 0, x=n, y=n, z=n, bounds=box)
-        t = pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box)
-        p = None
-        if backend == "numpy":
-            v, t, p = step(v, t, p)  # warm-up
-            times = []
-            for _ in range(steps):
-                t0 = time.perf_counter()
-                v, t, p = step(v, t, p)
-                times.append(time.perf_counter() - t0)
-            out["forward_s"] = float(np.median(times))
-        else:
-            w = pf.math.random_normal(t.values.shape)
-
-            def loss_of(v0):
-                vv, tt, pp = v0, pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box), None
-                for _ in range(grad_steps):
-                    vv, tt, pp = step(vv, tt, pp)
-                return pf.math.sum(tt.values * w)
-
-            grad_fn = pf.math.gradient(loss_of, "v0", get_output=False)
-            v0 = pf.StaggeredGrid(0, 0, x=n, y=n, z=n, bounds=box)
+    if steps:
+        v, t, p = fresh()
+        v, t, p = step(v, t, p)  # warm-up
+        times = []
+        for _ in range(steps):
             t0 = time.perf_counter()
-            grad_fn(v0)
-            out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
+            v, t, p = step(v, t, p)
+            times.append(time.perf_counter() - t0)
+        out["forward_s"] = float(np.median(times))
+    if grad_steps:
+        w = pf.math.random_normal(pf.CenteredGrid(0, pf.ZERO_GRADIENT, x=n, y=n, z=n, bounds=box).values.shape)
+
+        def loss_of(v0):
+            vv, tt, pp = v0, fresh()[1], None
+            for _ in range(grad_steps):
+                vv, tt, pp = step(vv, tt, pp)
+            return pf.math.sum(tt.values * w)
+
+        grad_fn = pf.math.gradient(loss_of, "v0", get_output=False)
+        t0 = time.perf_counter()
+        grad_fn(fresh()[0])
+        out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
     return out
 
 
@@ -148,6 +158,10 @@ def main(argv=None):
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-phiflow", action="store_true")
+    ap.add_argument("--phiflow-steps", type=int, nargs="+", default=[2, 1],
+                    help="PhiFlow's timed forward steps per size (0 skips; at 128³ a step takes minutes)")
+    ap.add_argument("--phiflow-grad-steps", type=int, nargs="+", default=[2, 0],
+                    help="PhiFlow's gradient rollout steps per size (0 skips)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     rows = []
@@ -157,7 +171,8 @@ def main(argv=None):
         row = {"n": n, "ours": ours(n, steps, gsteps, args.arch, args.threads)}
         print(f"{n}³ ours: {row['ours']}", flush=True)
         if not args.no_phiflow:
-            row["phiflow"] = phiflow(n, steps, gsteps, args.threads)
+            row["phiflow"] = phiflow(n, args.phiflow_steps[min(i, len(args.phiflow_steps) - 1)],
+                                     args.phiflow_grad_steps[min(i, len(args.phiflow_grad_steps) - 1)], args.threads)
             print(f"{n}³ PhiFlow: {row['phiflow']}", flush=True)
         rows.append(row)
     lines = [f"Smoke plume, {L} m cube, dt {DT} s, pressure to a relative residual of {TOL:g}; {args.arch}, "

@@ -236,22 +236,8 @@ class GasSimulator:
                 "gas": self.solver_report()}
 
     def _action_sequence(self, actions) -> np.ndarray:
-        n_tools = len(self.tool_specs)
-        if isinstance(actions, (int, np.integer)):
-            if actions < 1:
-                raise ValueError(f"a rollout needs at least one step, got {actions}")
-            return np.zeros((int(actions), n_tools, 6))
-        arr = np.asarray(actions, dtype=np.float64)
-        if n_tools == 0:
-            raise ValueError("this scene has no tools: pass the number of steps as actions")
-        if arr.ndim == 2 and n_tools == 1:
-            arr = arr[:, None, :]
-        if arr.ndim != 3 or arr.shape[1:] != (n_tools, 6) or len(arr) < 1:
-            raise ValueError(f"actions must have shape (N, 6) for one tool or (N, {n_tools}, 6), got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            bad = np.argwhere(~np.isfinite(arr))[0]
-            raise ValueError(f"actions contain NaN or infinity (first at step {bad[0]})")
-        return arr * T.action_masks(self.tool_specs)
+        """(N, n_tools, 6) masked twists from the forms `rollout` accepts (tools.action_sequence)."""
+        return T.action_sequence(self.tool_specs, actions)
 
     def rollout(self, actions, loss, grad: bool = False, segment_steps: int | None = None, progress=None, *,
                 terms: dict | None = None, step_offset: int = 0, horizon: int | None = None, checkpoint_dir=None,

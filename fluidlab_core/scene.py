@@ -68,6 +68,14 @@ class _Body:
     rest_volume: float  # what each particle stands for (m³): the sampling lattice's cell volume
     shape: S.Shape
 
+def _pose7(what: str, pose) -> np.ndarray:
+    """(x, y, z, qx, qy, qz, qw) as floats, refused unless finite with a non-zero quaternion."""
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
+        raise ValueError(f"{what}: pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, got {pose!r}")
+    return pose
+
+
 def _vec3(name, value):
     arr = np.asarray(value, dtype=float)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
@@ -231,17 +239,8 @@ class Scene:
         name = name or f"{material.name}_emitted_{len(self.emitters)}"
         if any(b.handle.name == name for b in self.bodies):
             raise ValueError(f"a particle body named {name!r} already exists")
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
-            raise ValueError(f"emitter {name!r}: pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, "
-                             f"got {pose!r}")
-        tool_index = None
-        if tool is not None:
-            key = tool if isinstance(tool, str) else getattr(tool, "name", None)
-            names = [t.name for t in self.tools]
-            if key not in names:
-                raise ValueError(f"emitter {name!r}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
-            tool_index = names.index(key)
+        pose = _pose7(f"emitter {name!r}", pose)
+        tool_index = self._carrier(f"emitter {name!r}", tool)
         spec = EmitterSpec(name, material, nozzle, size, rate, None if speed is None else float(speed),
                            pose[:3].copy(), pose[3:] / np.linalg.norm(pose[3:]), tool_index, self.particle_spacing)
         extent = float((self.upper - self.lower).min())
@@ -384,17 +383,8 @@ class Scene:
             raise ValueError(f"source {name!r}: shape must be 'box' or 'disc', got {shape!r}")
         if not all(v > 0 and math.isfinite(v) for v in size):
             raise ValueError(f"source {name!r}: size must be positive (m), got {tuple(size)}")
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (7,) or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[3:]) < 1e-9:
-            raise ValueError(f"source {name!r}: pose must be (x, y, z, qx, qy, qz, qw) with a non-zero quaternion, "
-                             f"got {pose!r}")
-        tool_index = None
-        if tool is not None:
-            key = tool if isinstance(tool, str) else getattr(tool, "name", None)
-            names = [t.name for t in self.tools]
-            if key not in names:
-                raise ValueError(f"source {name!r}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
-            tool_index = names.index(key)
+        pose = _pose7(f"source {name!r}", pose)
+        tool_index = self._carrier(f"source {name!r}", tool)
         values = {k: _number(f"source {name!r} {k}", v, allow_none=True)
                   for k, v in (("speed", speed), ("temperature", temperature), ("smoke", smoke))}
         if values["temperature"] is not None and values["temperature"] <= 0:
@@ -438,6 +428,16 @@ class Scene:
         sub = self.dt / g.substeps
         return {"speed": v, "cfl": v * sub / g.dx, "viscous": g.viscosity * sub / g.dx ** 2, "dx": g.dx,
                 "substep": sub}
+
+    def _carrier(self, what: str, tool) -> int | None:
+        """The index of the tool (or tool name) that carries an emitter or a source, None for the world."""
+        if tool is None:
+            return None
+        key = tool if isinstance(tool, str) else getattr(tool, "name", None)
+        names = [t.name for t in self.tools]
+        if key not in names:
+            raise ValueError(f"{what}: no tool {key!r} to carry it; tools: {', '.join(names) or 'none'}")
+        return names.index(key)
 
     # --- checks -----------------------------------------------------------------------------------------
     def stability_limits(self) -> dict:

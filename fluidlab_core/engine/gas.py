@@ -472,23 +472,30 @@ class GasSolver:
                                 self.V[st][1][I] + self.V[st][1][I + ti.Vector([0, 1, 0])],
                                 self.V[st][2][I] + self.V[st][2][I + ti.Vector([0, 0, 1])]])
 
+    @ti.func
+    def _stencil(self, I, j: ti.template()):
+        """(lo, hi, h): the neighbours of cell I along axis j for a central difference over h cells, one-sided
+        (h = 1) at a wall, none (h = 0) on an axis one cell thick."""
+        shape = ti.static(self.shape)
+        e = ti.Vector.unit(3, j, ti.i32)
+        lo = I - e
+        hi = I + e
+        h = 2.0
+        if I[j] == 0:
+            lo = I
+            h = 1.0
+        if I[j] == shape[j] - 1:
+            hi = I
+            h = h - 1.0
+        return lo, hi, h
+
     @ti.kernel
     def curl(self, st: ti.template()):
         """ω = ∇ × u at the cells, from the cell-centred velocity (central differences, one-sided at the walls)."""
-        shape = ti.static(self.shape)
         for I in ti.grouped(self.omega):
             grad = ti.Matrix.zero(self.real, 3, 3)  # grad[i, j] = ∂u_i/∂x_j
             for j in ti.static(range(3)):
-                e = ti.Vector.unit(3, j, ti.i32)
-                lo = I - e
-                hi = I + e
-                h = 2.0
-                if I[j] == 0:
-                    lo = I
-                    h = 1.0
-                if I[j] == shape[j] - 1:
-                    hi = I
-                    h = h - 1.0
+                lo, hi, h = self._stencil(I, j)
                 if h > 0.0:
                     dv = self._cell_velocity(st, hi) - self._cell_velocity(st, lo)
                     for i in ti.static(range(3)):
@@ -498,21 +505,11 @@ class GasSolver:
     @ti.kernel
     def confinement(self):
         """f = ε Δx (N × ω), N = ∇|ω| / |∇|ω|| (vorticity confinement) at the gas cells."""
-        shape = ti.static(self.shape)
         eps = ti.static(self.spec.vorticity)
         for I in ti.grouped(self.f_vort):
             gw = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
             for j in ti.static(range(3)):
-                e = ti.Vector.unit(3, j, ti.i32)
-                lo = I - e
-                hi = I + e
-                h = 2.0
-                if I[j] == 0:
-                    lo = I
-                    h = 1.0
-                if I[j] == shape[j] - 1:
-                    hi = I
-                    h = h - 1.0
+                lo, hi, h = self._stencil(I, j)
                 if h > 0.0:
                     gw[j] = (ti.sqrt(self.omega[hi].dot(self.omega[hi]) + 1e-20)
                              - ti.sqrt(self.omega[lo].dot(self.omega[lo]) + 1e-20)) / (h * self.dx)
@@ -628,26 +625,31 @@ class GasSolver:
                     v += u_hi - u_lo
             self.poisson.b[I] = v
 
+    @ti.func
+    def _dt_y(self, d: ti.template(), I):
+        """(Dᵀ y)_f = y_low − y_high on face I of axis d, y = poisson.x (0 outside the grid and in solids)."""
+        shape = ti.static(self.shape)
+        lo_cell = self._lo_cell(d, I)
+        hi_cell = self._hi_cell(d, I)
+        y_lo = 0.0
+        y_hi = 0.0
+        if I[d] > 0:
+            if self.solid[lo_cell] == 0:
+                y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
+        if I[d] < shape[d]:
+            if self.solid[hi_cell] == 0:
+                y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
+        return y_lo - y_hi
+
     @ti.kernel
     def subtract_gradient(self, src0: ti.template(), src1: ti.template(), src2: ti.template(),
                           dst0: ti.template(), dst1: ti.template(), dst2: ti.template(), masked: ti.template()):
-        """dst = src − (M) Dᵀ y with y = poisson.x; (Dᵀ y)_f = y_low − y_high (0 outside and in solids)."""
-        shape = ti.static(self.shape)
+        """dst = src − (M) Dᵀ y with y = poisson.x (_dt_y)."""
         for d in ti.static(range(3)):
             src = ti.static((src0, src1, src2)[d])
             dst = ti.static((dst0, dst1, dst2)[d])
             for I in ti.grouped(dst):
-                lo_cell = self._lo_cell(d, I)
-                hi_cell = self._hi_cell(d, I)
-                y_lo = 0.0
-                y_hi = 0.0
-                if I[d] > 0:
-                    if self.solid[lo_cell] == 0:
-                        y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
-                if I[d] < shape[d]:
-                    if self.solid[hi_cell] == 0:
-                        y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
-                g = y_lo - y_hi
+                g = self._dt_y(d, I)
                 if ti.static(masked):
                     g *= self._open_face(d, I)
                 dst[I] = src[I] - g
@@ -811,22 +813,12 @@ class GasSolver:
 
     @ti.kernel
     def _seed(self, g0: ti.template(), g1: ti.template(), g2: ti.template(), gq: ti.template()):
-        """V[S3T].grad = (the adjoint solve's face gradient held in V[S4].grad − Dᵀ y); Q[S2].grad += gq."""
-        shape = ti.static(self.shape)
+        """V[S3T].grad = g − Dᵀ y (the projection's adjoint: g the gradient carried in, y the adjoint solve's
+        solution); Q[S2].grad += gq."""
         for d in ti.static(range(3)):
             gin = ti.static((g0, g1, g2)[d])
             for I in ti.grouped(gin):
-                lo_cell = self._lo_cell(d, I)
-                hi_cell = self._hi_cell(d, I)
-                y_lo = 0.0
-                y_hi = 0.0
-                if I[d] > 0:
-                    if self.solid[lo_cell] == 0:
-                        y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
-                if I[d] < shape[d]:
-                    if self.solid[hi_cell] == 0:
-                        y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
-                self.V[S3T][d].grad[I] = gin[I] - (y_lo - y_hi)
+                self.V[S3T][d].grad[I] = gin[I] - self._dt_y(d, I)
         for I in ti.grouped(gq):
             self.Q[S2].grad[I] += gq[I]
 

@@ -153,6 +153,27 @@ def parse_action(specs, action) -> np.ndarray:
     return out * action_masks(specs)
 
 
+def action_sequence(specs, actions) -> np.ndarray:
+    """(N, n_tools, 6) masked twists from what a rollout accepts: (N, 6) for one tool, (N, n_tools, 6), or an
+    integer N for a scene without tools (steps with no action)."""
+    n_tools = len(specs)
+    if isinstance(actions, (int, np.integer)):
+        if actions < 1:
+            raise ValueError(f"a rollout needs at least one step, got {actions}")
+        return np.zeros((int(actions), n_tools, 6))
+    arr = np.asarray(actions, dtype=np.float64)
+    if n_tools == 0:
+        raise ValueError("this scene has no tools: pass the number of steps as actions")
+    if arr.ndim == 2 and n_tools == 1:
+        arr = arr[:, None, :]
+    if arr.ndim != 3 or arr.shape[1:] != (n_tools, 6) or len(arr) < 1:
+        raise ValueError(f"actions must have shape (N, 6) for one tool or (N, {n_tools}, 6), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise ValueError(f"actions contain NaN or infinity (first at step {bad[0]})")
+    return arr * action_masks(specs)
+
+
 def action_masks(specs) -> np.ndarray:
     """(n_tools, 6) of 0/1: which twist components each tool's action drives."""
     return np.array([s.action_mask for s in specs], dtype=np.float64).reshape(len(specs), 6)
