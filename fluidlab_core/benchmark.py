@@ -470,7 +470,32 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--min-generations", type=int, default=30, help="CMA-ES generations a budget must hold")
     ap.add_argument("--checkpoints", type=int, default=10, help="reference evaluations along each run's budget")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--report-only", action="store_true",
+                    help="write the table, Table 2 and the plots from OUT/runs.jsonl (the runs finished so far, e.g. "
+                    "of a sweep still running or cut short) and run nothing")
     return ap
+
+
+def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
+    """Table, Table 2 and plots of the finished runs in OUT/runs.jsonl (of the given tasks and methods, all by
+    default), without running anything."""
+    runs_path = Path(out) / "runs.jsonl"
+    if not runs_path.exists():
+        raise ValueError(f"no runs to report: {runs_path} does not exist")
+    records = [r for r in load_runs(runs_path) if (not tasks_ or r["task"] in tasks_)
+               and (not methods or r["method"] in methods or r["method"] == STILL)]
+    order = {t: i for i, t in enumerate(tasks_ or dict.fromkeys(r["task"] for r in records))}
+    from fluidlab_core.optim import METHODS
+
+    rank = {m: i for i, m in enumerate((STILL, *METHODS, *ABLATIONS))}
+    records.sort(key=lambda r: (order.get(r["task"], len(order)), rank.get(r["method"], len(rank)), r["seed"]))
+    text = table(records)
+    (Path(out) / "table.txt").write_text(text + "\n")
+    (Path(out) / "table2.md").write_text(paper_table(records) + "\n")
+    log(text)
+    for path in plot(records, Path(out)):
+        log(f"wrote {path}")
+    return records
 
 
 def main(argv=None) -> int:
@@ -478,6 +503,13 @@ def main(argv=None) -> int:
 
     args = build_parser().parse_args(argv)
     out = Path(args.out or f"bench/results/benchmark_{args.size}")
+    if args.report_only:
+        try:
+            report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
+        except ValueError as err:
+            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
+            return 2
+        return 0
     try:
         sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
               args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
