@@ -1,7 +1,7 @@
 """Gas solver throughput: a smoke plume at 64³ and 128³, forward and forward + backward, beside PhiFlow solving the
 same plume to the same pressure tolerance in the same process.
 
-    python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow]
+    python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow] [--report-only]
 
 The plume (both solvers): a closed cube of side 0.5 m, a heater (a sphere of radius 0.05 m centred 0.05 m above the
 floor) that sets the temperature excess to 30 K inside it every step, Boussinesq buoyancy a = g β ΔT with
@@ -150,6 +150,28 @@ def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
     return out
 
 
+def table(rows: list, arch: str, threads: int) -> str:
+    """The results table; a ratio is '-' where PhiFlow was not timed."""
+    lines = [f"Smoke plume, {L} m cube, dt {DT} s, pressure to a relative residual of {TOL:g}; {arch}, "
+             f"{threads} thread(s); seconds per step (median), steps/s in brackets; ratio = PhiFlow / ours "
+             f"(above 1: ours faster).", ""]
+    lines.append(f"{'grid':>6} {'ours fwd':>16} {'PhiFlow fwd':>16} {'ratio':>6} {'ours fwd+bwd':>16} "
+                 f"{'PhiFlow fwd+bwd':>16} {'ratio':>6} {'MGPCG iters':>11} {'solve / (V-cycle x 6)':>22}")
+    for r in rows:
+        o, p = r["ours"], r.get("phiflow", {})
+
+        def cell(x):
+            return f"{x:8.3f} ({1 / x:5.2f})" if x else f"{'-':>16}"
+
+        def ratio(key):
+            return f"{p[key] / o[key]:6.2f}" if p.get(key) else f"{'-':>6}"
+
+        lines.append(f"{r['n']:>5}³ {cell(o['forward_s'])} {cell(p.get('forward_s'))} {ratio('forward_s')} "
+                     f"{cell(o['forward_backward_s'])} {cell(p.get('forward_backward_s'))} {ratio('forward_backward_s')} "
+                     f"{o['iterations']:>11} {o['solve_per_vcycle_digit']:>22.2f}")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
@@ -163,7 +185,14 @@ def main(argv=None):
     ap.add_argument("--phiflow-grad-steps", type=int, nargs="+", default=[2, 0],
                     help="PhiFlow's gradient rollout steps per size (0 skips)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--report-only", action="store_true", help="rewrite the .txt table from the .json of a run")
     args = ap.parse_args(argv)
+    out = Path(args.out or ROOT / "bench" / "results" / f"gas_{args.arch}")
+    if args.report_only:
+        text = table(json.loads(out.with_suffix(".json").read_text()), args.arch, args.threads)
+        print(text)
+        out.with_suffix(".txt").write_text(text + "\n")
+        return
     rows = []
     for i, n in enumerate(args.sizes):
         steps = args.steps[min(i, len(args.steps) - 1)]
@@ -175,25 +204,8 @@ def main(argv=None):
                                      args.phiflow_grad_steps[min(i, len(args.phiflow_grad_steps) - 1)], args.threads)
             print(f"{n}³ PhiFlow: {row['phiflow']}", flush=True)
         rows.append(row)
-    lines = [f"Smoke plume, {L} m cube, dt {DT} s, pressure to a relative residual of {TOL:g}; {args.arch}, "
-             f"{args.threads} thread(s); seconds per step (median), steps/s in brackets; ratio = PhiFlow / ours "
-             f"(above 1: ours faster).", ""]
-    lines.append(f"{'grid':>6} {'ours fwd':>16} {'PhiFlow fwd':>16} {'ratio':>6} {'ours fwd+bwd':>16} "
-                 f"{'PhiFlow fwd+bwd':>16} {'ratio':>6} {'MGPCG iters':>11} {'solve / (V-cycle x 6)':>22}")
-    for r in rows:
-        o, p = r["ours"], r.get("phiflow", {})
-
-        def cell(x):
-            return f"{x:8.3f} ({1 / x:5.2f})" if x else f"{'-':>16}"
-
-        rf = p.get("forward_s", 0) / o["forward_s"] if p else 0
-        rb = p.get("forward_backward_s", 0) / o["forward_backward_s"] if p else 0
-        lines.append(f"{r['n']:>5}³ {cell(o['forward_s'])} {cell(p.get('forward_s'))} {rf:6.2f} "
-                     f"{cell(o['forward_backward_s'])} {cell(p.get('forward_backward_s'))} {rb:6.2f} "
-                     f"{o['iterations']:>11} {o['solve_per_vcycle_digit']:>22.2f}")
-    text = "\n".join(lines)
+    text = table(rows, args.arch, args.threads)
     print(text)
-    out = Path(args.out or ROOT / "bench" / "results" / f"gas_{args.arch}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".txt").write_text(text + "\n")
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
