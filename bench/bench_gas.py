@@ -1,7 +1,8 @@
 """Gas solver throughput: a smoke plume at 64³ and 128³, forward and forward + backward, beside PhiFlow solving the
 same plume to the same pressure tolerance in the same process.
 
-    python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow] [--report-only]
+    python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow]
+        [--report-only]
 
 The plume (both solvers): a closed cube of side 0.5 m, a heater (a sphere of radius 0.05 m centred 0.05 m above the
 floor) that sets the temperature excess to 30 K inside it every step, Boussinesq buoyancy a = g β ΔT with
@@ -167,7 +168,8 @@ def table(rows: list, arch: str, threads: int) -> str:
             return f"{p[key] / o[key]:6.2f}" if p.get(key) else f"{'-':>6}"
 
         lines.append(f"{r['n']:>5}³ {cell(o['forward_s'])} {cell(p.get('forward_s'))} {ratio('forward_s')} "
-                     f"{cell(o['forward_backward_s'])} {cell(p.get('forward_backward_s'))} {ratio('forward_backward_s')} "
+                     f"{cell(o['forward_backward_s'])} {cell(p.get('forward_backward_s'))} "
+                     f"{ratio('forward_backward_s')} "
                      f"{o['iterations']:>11} {o['solve_per_vcycle_digit']:>22.2f}")
     return "\n".join(lines)
 

@@ -9,9 +9,9 @@ BODY: rigid | elastic. LIQUID: std (the catalogue's water) | nt (the same water 
 −λ(J − 1)), J ≤ 1, a model registered here, as a user would). --drop M: the cube starts M above the flat
 surface (dropped); otherwise at Archimedes' depth (water filled around it), or --raise M above it.
 --substep-factor and --bulk-factor scale the stable substep count and the water's bulk modulus (the knobs
-that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the rigid
-body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered. Appends its table to
-bench/results/buoyancy_3d.txt unless --no-save.
+that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the
+rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
+Appends its table to bench/results/buoyancy_3d.txt unless --no-save.
 """
 from __future__ import annotations
 
@@ -75,7 +75,8 @@ def main():
                  ((lo_c, hi_c, bottom), (hi_c, width, level))]
     for lo, hi in boxes:
         scene.add_particles(Box(lo, hi), water)
-    body = M.Rigid("light_rigid", density=rho, bulk_modulus=M.RIGID.bulk_modulus * args.body_bulk_factor) if args.body == "rigid" else \
+    rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor
+    body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
         M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
     scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)), body, name="cube")
     scene.substeps = int(round(scene.stable_substeps() * args.substep_factor))
@@ -93,7 +94,8 @@ def main():
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
     start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
-    text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water (λ × {args.bulk_factor:g}), "
+    text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
+                      f"(λ × {args.bulk_factor:g}), "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
                       f"{'t s':>5} {'depth / b':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"

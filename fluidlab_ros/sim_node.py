@@ -38,7 +38,6 @@ import dataclasses
 import json
 import math
 import multiprocessing as mp
-import os
 import queue
 import signal
 import sys
@@ -76,7 +75,7 @@ from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess,
+from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess, udp_only,
                                  row_state, rows_for, write_row)
 from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
@@ -1155,13 +1154,7 @@ def main(args=None):
         print(f"sim_node: unknown arguments {own}; set parameters with --ros-args -p name:=value (sim_node --help)",
               file=sys.stderr)
         return 2
-    # UDP only, as the stream process (fluidlab_ros/stream.py): a reader then gets the stream process's commands
-    # and this process's take-over ramp through the same socket, in the order they were sent. With shared memory
-    # here the ramp took another path than the stream's last UDP datagrams, and a loaded reader (a Taichi compile
-    # beside it) handled the ramp, its final zero included, before them: the monitor saw a stream that ended at
-    # rest and then started again at 0.16 rad/s (tests/ros/test_stream_faults.py), and a velocity controller
-    # would have held that stale command.
-    os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    udp_only()  # the stream process's transport, so that readers get its commands and the take-over in order
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -143,14 +143,21 @@ def rows_for(n_commands: int, control_rate: float) -> int:
 
 
 # --- the stream process ----------------------------------------------------------------------------------
+def udp_only():
+    """Fast DDS over UDP only for this process, unless the user chose its transports (before rclpy.init). Both the
+    stream process and sim_node's process call it. Shared memory writes into each reader's port under a lock, and
+    a stream process stopped (SIGSTOP, a stall) while it held one delayed the node's take-over ramp to the same
+    reader by 2 s. And with the node alone on shared memory, a loaded reader handled the take-over ramp, its final
+    zero included, before the stream's last UDP datagrams, then held a stale 0.16 rad/s command; on one transport
+    a reader gets both through one socket in send order (tests/ros/test_stream_faults.py)."""
+    os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+
+
 def stream_process(config: dict, jobs, results):
     """Entry point of the stream process (multiprocessing, spawn). config: robot_model, mode, node_name,
     commands_topic, controller_topic (or ''), joint_state_topic, joint_state_qos, realtime_priority."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the node ramps
-    # Fast DDS over UDP only for this process, unless the user chose its transports: its shared-memory transport
-    # writes into each reader's port under a lock, and a stream process stopped (SIGSTOP, a stall) while it held
-    # one delayed the node's take-over ramp to the same reader by 2 s (tests/ros/test_stream_faults.py)
-    os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    udp_only()
     rt = _realtime(int(config["realtime_priority"]))
     import multiprocessing as mp
     import queue
