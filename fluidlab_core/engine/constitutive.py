@@ -22,8 +22,9 @@ position. A material (materials.py) names its model and gives the values (`Mater
 
 Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models registered with
 needs_svd=False), so that the differentiable solver can compute it in a kernel of its own whose gradient is
-written by hand (svd.py), while the forward kernels compute it inline (`stress`). The solvers unroll the
-models present in a scene with `ti.static`, so a scene of liquids never pays for an SVD.
+written by hand (svd.py), while the forward kernels compute it inline, once per particle whatever the number
+of models that read it (transfer.stress). The solvers unroll the models present in a scene with `ti.static`,
+so a scene of liquids never pays for an SVD.
 
 Adding a model: write the function with Taichi's autodiff rules in mind (whole-matrix updates, no local
 written inside a branch, `statics.safe_norm` for norms that can be zero) and register it:
@@ -40,7 +41,6 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-from fluidlab_core.engine import svd as svd3
 
 # Singular values below this are clamped before a logarithm (an inverted or crushed element).
 _MIN_STRETCH = 0.05
@@ -158,20 +158,3 @@ def rigid(F, C, prm, U, sig, V):
     """Rigid body particle: F is set by the rigid projection; only its volume change is resisted."""
     J = F.determinant()
     return F, ti.Matrix.identity(float, 3) * (prm.lam * J * (J - 1.0))
-
-
-def with_svd(model: ConstitutiveModel):
-    """`model` as a function of (F, C, prm) that computes the SVD of F itself when it needs one (forward
-    kernels)."""
-    func, needs_svd = model.func, model.needs_svd
-
-    @ti.func
-    def stress(F, C, prm):
-        U = ti.Matrix.zero(float, 3, 3)
-        sig = ti.Matrix.zero(float, 3, 3)
-        V = ti.Matrix.zero(float, 3, 3)
-        if ti.static(needs_svd):
-            U, sig, V = svd3.svd(F)
-        return func(F, C, prm, U, sig, V)
-
-    return stress

@@ -169,28 +169,26 @@ class DiffSolver(Solver):
         """U Σ Vᵀ = F_trial for particles whose model needs it (re-run before each substep's backward, so it also
         zeroes the gradients of U, Σ, V that the stress's backward accumulates)."""
         for p in range(self.n_particles):
-            for k in ti.static(self.model.svd_models):
-                if self.model.model[p] == k:
-                    self.U[p], self.sig[p], self.V[p] = svd3.svd(
-                        transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]))
-                    self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
-                    self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
-                    self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
+            if transfer.needs_svd(self.model, p):  # one SVD call site, whatever the number of models
+                self.U[p], self.sig[p], self.V[p] = svd3.svd(
+                    transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]))
+                self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
+                self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
+                self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
 
     @ti.kernel
     def svd_grad_kernel(self, s: ti.i32):
         """Gradient of F_trial from those of U, Σ, V (svd.py), on to C and F: with G = ∂L/∂F_trial,
         ∂L/∂C += Δt G Fᵀ and ∂L/∂F += (I + Δt C)ᵀ G."""
         for p in range(self.n_particles):
-            for k in ti.static(self.model.svd_models):
-                if self.model.model[p] == k:
-                    G = self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
-                                          self.V[p])
-                    # one thread per particle: plain read-modify-writes, not atomic adds
-                    self.state.C.grad[s, p] = self.state.C.grad[s, p] + self.model.dt * G @ \
-                        self.state.F[s, p].transpose()
-                    self.state.F.grad[s, p] = (self.state.F.grad[s, p] + (
-                        ti.Matrix.identity(float, 3) + self.model.dt * self.state.C[s, p]).transpose() @ G)
+            if transfer.needs_svd(self.model, p):
+                G = self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
+                                      self.V[p])
+                # one thread per particle: plain read-modify-writes, not atomic adds
+                self.state.C.grad[s, p] = self.state.C.grad[s, p] + self.model.dt * G @ \
+                    self.state.F[s, p].transpose()
+                self.state.F.grad[s, p] = (self.state.F.grad[s, p] + (
+                    ti.Matrix.identity(float, 3) + self.model.dt * self.state.C[s, p]).transpose() @ G)
 
     @ti.ad.grad_replaced
     def svd(self, s: int):

@@ -74,7 +74,8 @@ def _box_weight_local(half, dx):
             w *= _smoothstep((h[a] * h[a] - q[a] * q[a]) / (2.0 * h[a] * dx) + 0.5)
         return w
 
-    return weight
+    # w = 0 where any q_a² ≥ h_a² + h_a Δx: outside the sphere of this radius about the origin
+    return weight, math.sqrt(sum(v * v + v * dx for v in h))
 
 
 def _disc_weight_local(radius, half, dx):
@@ -87,7 +88,7 @@ def _disc_weight_local(radius, half, dx):
         return _smoothstep((r * r - rr) / (2.0 * r * dx) + 0.5) * \
             _smoothstep((h * h - q[2] * q[2]) / (2.0 * h * dx) + 0.5)
 
-    return weight
+    return weight, math.sqrt(r * r + r * dx + h * h + h * dx)
 
 
 @ti.data_oriented
@@ -140,6 +141,18 @@ class GasSolver:
         self.src_R = ti.Matrix.field(3, 3, real, shape=ns, needs_grad=g)
         self.src_speed = ti.field(real, shape=ns, needs_grad=g)
         self.src_q = ti.field(real, shape=(ns, self.n_q), needs_grad=g)
+        # the sources' frames in the world (their parent tool's pose composed) and their weights w at the faces
+        # and cells, from `source_frames` and `source_weights` before the blend (`sources_stage`): computed once a
+        # step, so the blend's gradient kernel stays small (with the weight inline, once per face axis and scalar,
+        # that kernel took 6 minutes to compile). src_centre is the frames' origin without a gradient: the weight
+        # kernel skips points out of the source's reach with it.
+        self.src_pw = ti.Vector.field(3, real, shape=ns, needs_grad=g)
+        self.src_Rw = ti.Matrix.field(3, 3, real, shape=ns, needs_grad=g)
+        self.src_centre = ti.Vector.field(3, real, shape=ns)
+        wshape = (ns,) if self.sources else (1,)
+        self.src_wf = [ti.field(real, shape=wshape + (self.face_shapes[d] if self.sources else (1, 1, 1)),
+                                needs_grad=g) for d in range(3)]
+        self.src_wc = ti.field(real, shape=wshape + (self.shape if self.sources else (1, 1, 1)), needs_grad=g)
         self._wall_kind = tuple(INFLOW if not isinstance(w, str) else (OPEN if w == "open" else CLOSED)
                                 for w in spec.walls)
         self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
@@ -150,8 +163,10 @@ class GasSolver:
         self.max_speed = ti.field(real, shape=())
         self._tool_sdf = [statics.sdf_func(t.shape, real, 0.5 * self.dx) for t in self.tool_specs] \
             if spec.tools_block else []
-        self._src_weight = [(_box_weight_local(s.size, self.dx) if s.shape == "box"
-                             else _disc_weight_local(*s.size, self.dx)) for s in self.sources]
+        weights = [(_box_weight_local(s.size, self.dx) if s.shape == "box"
+                    else _disc_weight_local(*s.size, self.dx)) for s in self.sources]
+        self._src_weight = [w for w, _ in weights]
+        self._src_reach2 = tuple((reach + self.dx) ** 2 for _, reach in weights)
         # compile-time constants of the kernels (Python numbers and tuples)
         self._lower = tuple(float(v) for v in spec.lower)
         self._gravity = tuple(float(v) for v in spec.gravity)
@@ -159,6 +174,7 @@ class GasSolver:
         self._src_tau = tuple(float(src.relaxation_time) for src in self.sources)
         self._src_tool = tuple(-1 if src.tool is None else int(src.tool) for src in self.sources)
         self._src_sets = tuple(tuple(self._source_sets(i, c) for c in range(self.n_q)) for i in range(len(self.sources)))
+        self._src_sets_any = tuple(any(sets) for sets in self._src_sets)
         self._moving_solids = bool(self._tool_sdf) or spec.particles_block
         self._static = np.zeros(self.shape, dtype=np.int8) if static_solid is None else \
             np.asarray(static_solid, dtype=np.int8)
@@ -358,8 +374,48 @@ class GasSolver:
             self.poisson.flags[0][I] = ti.cast(FLUID if self.solid[I] == 0 else SOLID, ti.i8)
 
     @ti.kernel
+    def source_frames(self):
+        """The sources' rotation and origin in the world: their own pose, composed with their tool's."""
+        for _ in range(1):  # a loop, so that the kernel's gradient is Taichi's (no statements outside loops)
+            for s in ti.static(range(len(self.sources))):
+                if ti.static(self._src_tool[s] >= 0):
+                    t = ti.static(self._src_tool[s])
+                    p = self.tool_p[t] + self.tool_R[t] @ self.src_p[s]
+                    self.src_Rw[s] = self.tool_R[t] @ self.src_R[s]
+                    self.src_pw[s] = p
+                    self.src_centre[s] = p
+                else:
+                    self.src_Rw[s] = self.src_R[s]
+                    self.src_pw[s] = self.src_p[s]
+                    self.src_centre[s] = self.src_p[s]
+
+    @ti.kernel
+    def source_weights(self):
+        """w of every source at the faces (sources with a speed) and the cells (sources that set a scalar); 0 out of
+        the source's reach, where the soft indicator and its derivatives are 0 (the frame is read only within it,
+        so the gradient kernel adds into the frame's gradient from those points only)."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[S0][d]):
+                x = self._face_pos(d, I)
+                for s in ti.static(range(len(self.sources))):
+                    if ti.static(self._src_has_speed[s]):
+                        w = 0.0
+                        if (x - self.src_centre[s]).norm_sqr() < ti.static(self._src_reach2[s]):
+                            w = self._src_weight[s](self.src_Rw[s].transpose() @ (x - self.src_pw[s]))
+                        self.src_wf[d][s, I[0], I[1], I[2]] = w
+        for I in ti.grouped(self.solid):
+            x = self._cell_pos(I)
+            for s in ti.static(range(len(self.sources))):
+                if ti.static(self._src_sets_any[s]):
+                    w = 0.0
+                    if (x - self.src_centre[s]).norm_sqr() < ti.static(self._src_reach2[s]):
+                        w = self._src_weight[s](self.src_Rw[s].transpose() @ (x - self.src_pw[s]))
+                    self.src_wc[s, I[0], I[1], I[2]] = w
+
+    @ti.kernel
     def sources_stage(self, a: ti.template(), b: ti.template(), dt: ti.template()):
-        """Stage b from stage a: the sources blend velocity and scalars, faces at solids take their velocity."""
+        """Stage b from stage a: the sources blend velocity and scalars with the weights of source_weights (where w
+        = 0 the blend is the identity, and w's derivative is 0 as well), faces at solids take their velocity."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[a][d]):
                 fixed, vs = self._face_solid(d, I)
@@ -367,23 +423,24 @@ class GasSolver:
                 if fixed:
                     u = vs
                 else:
-                    x = self._face_pos(d, I)
                     for s in ti.static(range(len(self.sources))):
                         if ti.static(self._src_has_speed[s]):
-                            w = self._source_weight(s, x) * self._source_rate(s, dt)
-                            Rw, _ = self._source_frame(s)
-                            u += w * (self.src_speed[s] * Rw[d, 2] - u)
+                            w = self.src_wf[d][s, I[0], I[1], I[2]]
+                            if w > 0.0:
+                                wa = w * self._source_rate(s, dt)
+                                u += wa * (self.src_speed[s] * self.src_Rw[s][d, 2] - u)
                 self.V[b][d][I] = u
         for I in ti.grouped(self.solid):
             gas = self.solid[I] == 0
-            x = self._cell_pos(I)
             for c in ti.static(range(self.n_q)):
                 q = self.Q[a][c, I[0], I[1], I[2]]
                 if gas:
                     for s in ti.static(range(len(self.sources))):
                         if ti.static(self._src_sets[s][c]):
-                            w = self._source_weight(s, x) * self._source_rate(s, dt)
-                            q += w * (self.src_q[s, c] - q)
+                            w = self.src_wc[s, I[0], I[1], I[2]]
+                            if w > 0.0:
+                                wa = w * self._source_rate(s, dt)
+                                q += wa * (self.src_q[s, c] - q)
                 self.Q[b][c, I[0], I[1], I[2]] = q
 
     @ti.func
@@ -402,22 +459,6 @@ class GasSolver:
         if name == "smoke":
             return src.smoke is not None
         return name in src.scalars
-
-    @ti.func
-    def _source_frame(self, s: ti.template()):
-        """The source's rotation and origin in the world."""
-        R = self.src_R[s]
-        p = self.src_p[s]
-        if ti.static(self._src_tool[s] >= 0):
-            t = ti.static(self._src_tool[s])
-            p = self.tool_p[t] + self.tool_R[t] @ p
-            R = self.tool_R[t] @ R
-        return R, p
-
-    @ti.func
-    def _source_weight(self, s: ti.template(), x):
-        R, p = self._source_frame(s)
-        return self._src_weight[s](R.transpose() @ (x - p))
 
     @ti.kernel
     def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(), keep: ti.template()):
@@ -691,6 +732,9 @@ class GasSolver:
 
     def forward_stages(self, dt: float):
         """Stages S0 → S3T (everything before the projection's solve), from the state in stage S0."""
+        if self.sources:
+            self.source_frames()
+            self.source_weights()
         self.sources_stage(S0, S1, dt)
         if self.spec.advection == "maccormack":
             self.advect_sl(S1, S1, HAT, dt, True)
@@ -787,6 +831,15 @@ class GasSolver:
             self.omega.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.f_vort.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.solid_v.grad[I] = ti.Vector([0.0, 0.0, 0.0])
+        if ti.static(len(self.sources) > 0):
+            for d in ti.static(range(3)):
+                for J in ti.grouped(self.src_wf[d]):
+                    self.src_wf[d].grad[J] = 0.0
+            for J in ti.grouped(self.src_wc):
+                self.src_wc.grad[J] = 0.0
+        for s in range(self.src_pw.shape[0]):
+            self.src_pw.grad[s] = ti.Vector([0.0, 0.0, 0.0])
+            self.src_Rw.grad[s] = ti.Matrix.zero(self.real, 3, 3)
         for t in range(self.tool_p.shape[0]):
             self.tool_p.grad[t] = ti.Vector([0.0, 0.0, 0.0])
             self.tool_R.grad[t] = ti.Matrix.zero(self.real, 3, 3)
@@ -847,6 +900,9 @@ class GasSolver:
         else:
             self.advect_sl.grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
+        if self.sources:
+            self.source_weights.grad()
+            self.source_frames.grad()
         if self._tool_sdf:
             self.boundaries.grad()
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)

@@ -92,7 +92,6 @@ class Model:
         # constitutive models present, unrolled statically by the kernels; one parameter struct field each
         names = sorted({m.model for m in spec.materials})
         self.constitutive = [constitutive.get(name) for name in names]
-        self.stress_funcs = [constitutive.with_svd(m) for m in self.constitutive]
         self.svd_models = [k for k, m in enumerate(self.constitutive) if m.needs_svd]
         np_real = self.np_real
         self._uploads = []  # (field, numpy data) to upload once everything is allocated (module docstring)

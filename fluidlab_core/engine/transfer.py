@@ -23,6 +23,7 @@ Every function takes the Model (model.py) as a template argument; both solvers c
 
 import taichi as ti
 
+from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine.grid import stencil
 
 
@@ -33,13 +34,32 @@ def trial_strain(model: ti.template(), C, F):
 
 
 @ti.func
+def needs_svd(model: ti.template(), p):
+    """Whether particle p's constitutive model reads the SVD of F_trial."""
+    need = False
+    for k in ti.static(model.svd_models):
+        if model.model[p] == k:
+            need = True
+    return need
+
+
+@ti.func
 def stress(model: ti.template(), p, F_trial, C):
-    """(F_new, τ) of particle p's constitutive model (its SVD inline), unrolled over the models present."""
+    """(F_new, τ) of particle p's constitutive model, unrolled over the models present. The SVD is computed at
+    one place for every model that needs it: one inlined copy per model made a scene with three such models
+    (elastic, two plastics) compile three SVDs into each substep kernel (a float64 forward kernel took 211 s
+    to compile, most of it the copies)."""
     Fp = F_trial
     tau = ti.Matrix.zero(float, 3, 3)
+    U = ti.Matrix.zero(float, 3, 3)
+    sig = ti.Matrix.zero(float, 3, 3)
+    V = ti.Matrix.zero(float, 3, 3)
+    if ti.static(len(model.svd_models) > 0):
+        if needs_svd(model, p):
+            U, sig, V = svd3.svd(F_trial)
     for k in ti.static(range(len(model.constitutive))):
         if model.model[p] == k:
-            Fp, tau = model.stress_funcs[k](F_trial, C, model.params[k][model.material[p]])
+            Fp, tau = model.constitutive[k].func(F_trial, C, model.params[k][model.material[p]], U, sig, V)
     return Fp, tau
 
 
