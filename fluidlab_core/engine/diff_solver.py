@@ -6,7 +6,7 @@ Its gradient is Taichi's reverse-mode autodiff where that is cheap, and by hand 
 (svd.py, carried on to C and F by hand), the P2G scatter and the G2P gather (transfer.py). The backward of
 substep s (`substep_grad`) runs these kernels, built from the same functions as the forward, in reverse order:
 
-    U, Σ, V = svd((I + Δt C) F)            only for models that need it; backward by hand
+    F_trial = (I + Δt C) F; U, Σ, V = svd(F_trial)   the SVD only for models that need it; backward by hand
     stress: (F_new, τ) = model(...)         autodiff, one kernel per model (all models in one reverse kernel
                                            took 11 minutes to compile)
     P2G                                    backward by hand (transfer.p2g_backward)
@@ -69,7 +69,11 @@ class DiffSolver(Solver):
         self.n_slots = int(n_slots)
         self.state = StateBuffer(n, model.n_tools, self.n_slots, real, needs_grad=True, n_emitters=model.n_emitters)
         # per-substep intermediates, recomputed by the backward pass
-        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of (I + Δt C) F: left rotation
+        # F_trial = (I + Δt C) F, kept for the stress kernels: computed there, it made each stress gradient kernel
+        # compile 2-3× longer (Taichi's simplification grows faster than a kernel; a fixed-corotated stress
+        # kernel's gradient took 41 s in float64 with it inline); its gradient goes on to C and F by hand
+        self.F_trial = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)
+        self.U = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # SVD of F_trial: left rotation
         self.sig = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # singular values (diagonal)
         self.V = ti.Matrix.field(3, 3, real, shape=n, needs_grad=True)  # right rotation
         if self.rigid is None:
@@ -110,7 +114,7 @@ class DiffSolver(Solver):
         """Zero the gradients of every slot, and of the intermediates that the backward kernels zero after use
         (x_pre, v_pre, C_pre, U, Σ, V: in case an earlier backward stopped half-way)."""
         self.state.clear_grads()
-        for f in (self.x_pre, self.v_pre, self.C_pre, self.U, self.sig, self.V):
+        for f in (self.x_pre, self.v_pre, self.C_pre, self.F_trial, self.U, self.sig, self.V):
             f.grad.fill(0.0)
 
     # --- one substep, forward and backward ----------------------------------------------------------
@@ -133,8 +137,7 @@ class DiffSolver(Solver):
             if self.rigid is not None:
                 self.rigid.forward(self.state, s + 1)
             return
-        if self.model.svd_models:
-            self.svd(s)  # SVD of F_trial
+        self.svd(s)  # F_trial, and its SVD for the models that need it
         if self.rigid is not None:
             self.rigid.clear_grads()
             for k in range(len(self.model.constitutive)):
@@ -155,8 +158,7 @@ class DiffSolver(Solver):
         self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.model.constitutive))):
             self.stress.grad(s, k)
-        if self.model.svd_models:
-            self.svd_grad(s)
+        self.svd_grad(s)
 
     @ti.kernel
     def forward_kernel(self, s: ti.i32, keep: ti.template()):
@@ -166,29 +168,32 @@ class DiffSolver(Solver):
     # --- SVD and stress -------------------------------------------------------------------------------
     @ti.kernel
     def svd_kernel(self, s: ti.i32):
-        """U Σ Vᵀ = F_trial for particles whose model needs it (re-run before each substep's backward, so it also
-        zeroes the gradients of U, Σ, V that the stress's backward accumulates)."""
+        """F_trial = (I + Δt C) F, and U Σ Vᵀ = F_trial for particles whose model needs it (re-run before each
+        substep's backward, so it also zeroes the gradients of F_trial, U, Σ, V that the stress's backward
+        accumulates)."""
         for p in range(self.n_particles):
+            F_tr = transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p])
+            self.F_trial[p] = F_tr
+            self.F_trial.grad[p] = ti.Matrix.zero(float, 3, 3)
             if transfer.needs_svd(self.model, p):  # one SVD call site, whatever the number of models
-                self.U[p], self.sig[p], self.V[p] = svd3.svd(
-                    transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]))
+                self.U[p], self.sig[p], self.V[p] = svd3.svd(F_tr)
                 self.U.grad[p] = ti.Matrix.zero(float, 3, 3)
                 self.sig.grad[p] = ti.Matrix.zero(float, 3, 3)
                 self.V.grad[p] = ti.Matrix.zero(float, 3, 3)
 
     @ti.kernel
     def svd_grad_kernel(self, s: ti.i32):
-        """Gradient of F_trial from those of U, Σ, V (svd.py), on to C and F: with G = ∂L/∂F_trial,
-        ∂L/∂C += Δt G Fᵀ and ∂L/∂F += (I + Δt C)ᵀ G."""
+        """Gradient of F_trial: the stress kernels' (F_trial.grad) plus, for models with an SVD, that from U, Σ, V
+        (svd.py); on to C and F: with G = ∂L/∂F_trial, ∂L/∂C += Δt G Fᵀ and ∂L/∂F += (I + Δt C)ᵀ G."""
         for p in range(self.n_particles):
+            G = self.F_trial.grad[p]
             if transfer.needs_svd(self.model, p):
-                G = self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
-                                      self.V[p])
-                # one thread per particle: plain read-modify-writes, not atomic adds
-                self.state.C.grad[s, p] = self.state.C.grad[s, p] + self.model.dt * G @ \
-                    self.state.F[s, p].transpose()
-                self.state.F.grad[s, p] = (self.state.F.grad[s, p] + (
-                    ti.Matrix.identity(float, 3) + self.model.dt * self.state.C[s, p]).transpose() @ G)
+                G = G + self.backward_svd(self.U.grad[p], self.sig.grad[p], self.V.grad[p], self.U[p], self.sig[p],
+                                          self.V[p])
+            # one thread per particle: plain read-modify-writes, not atomic adds
+            self.state.C.grad[s, p] = self.state.C.grad[s, p] + self.model.dt * G @ self.state.F[s, p].transpose()
+            self.state.F.grad[s, p] = (self.state.F.grad[s, p] + (
+                ti.Matrix.identity(float, 3) + self.model.dt * self.state.C[s, p]).transpose() @ G)
 
     @ti.ad.grad_replaced
     def svd(self, s: int):
@@ -207,8 +212,7 @@ class DiffSolver(Solver):
                 if self._active(s, p):
                     prm = self.model.params[k][self.model.material[p]]
                     self.F_model[p], self.tau[p] = self.model.constitutive[k].func(
-                        transfer.trial_strain(self.model, self.state.C[s, p], self.state.F[s, p]),
-                        self.state.C[s, p], prm, self.U[p], self.sig[p], self.V[p])
+                        self.F_trial[p], self.state.C[s, p], prm, self.U[p], self.sig[p], self.V[p])
                 else:  # a pool particle not yet emitted: F = I, τ = 0, whatever its slot holds
                     self.F_model[p], self.tau[p] = ti.Matrix.identity(float, 3), ti.Matrix.zero(float, 3, 3)
 
