@@ -149,10 +149,10 @@ class GasSolver:
         self.src_pw = ti.Vector.field(3, real, shape=ns, needs_grad=g)
         self.src_Rw = ti.Matrix.field(3, 3, real, shape=ns, needs_grad=g)
         self.src_centre = ti.Vector.field(3, real, shape=ns)
-        wshape = (ns,) if self.sources else (1,)
-        self.src_wf = [ti.field(real, shape=wshape + (self.face_shapes[d] if self.sources else (1, 1, 1)),
+        # (a one-cell placeholder without sources: their kernels are not run then)
+        self.src_wf = [ti.field(real, shape=(ns,) + (self.face_shapes[d] if self.sources else (1, 1, 1)),
                                 needs_grad=g) for d in range(3)]
-        self.src_wc = ti.field(real, shape=wshape + (self.shape if self.sources else (1, 1, 1)), needs_grad=g)
+        self.src_wc = ti.field(real, shape=(ns,) + (self.shape if self.sources else (1, 1, 1)), needs_grad=g)
         self._wall_kind = tuple(INFLOW if not isinstance(w, str) else (OPEN if w == "open" else CLOSED)
                                 for w in spec.walls)
         self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
