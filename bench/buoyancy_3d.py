@@ -1,21 +1,27 @@
 """Buoyancy in 3-D (the open problem of floating bodies, docs/engine.md): a 4 cm cube of 500 kg/m³ in 6 cm of
 water in a closed 12 cm box (the domain's walls), 24 cells across; the share of the cube below the far-field
-surface every 0.1 s. Archimedes: 0.50.
+surface every 0.1 s. Archimedes: ρ/ρ_w (0.50 by default, 0.40 for the foam).
 
     python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
-        [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3] [--no-save]
+        [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3]
+        [--contact-fill F] [--no-save]
 
-BODY: rigid | elastic. LIQUID: std (the catalogue's water) | nt (the same water without tension: p = max(0,
+BODY: rigid | elastic | foam (the tasks' floating foam, 400 kg/m³, E = 4.75 kPa). LIQUID: std (the catalogue's
+water) | task (the tasks' water, sound speed 4 m/s) | nt (the same water without tension: p = max(0,
 −λ(J − 1)), J ≤ 1, a model registered here, as a user would). --drop M: the cube starts M above the flat
 surface (dropped); otherwise at Archimedes' depth (water filled around it), or --raise M above it.
 --substep-factor and --bulk-factor scale the stable substep count and the water's bulk modulus (the knobs
 that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
-Appends its table to bench/results/buoyancy_3d.txt unless --no-save.
+Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
+particles below that surface (share). The header says whether the engine had one velocity field or two
+(engine/grid.py; an engine from before the two fields has one). Appends its table to
+bench/results/buoyancy_3d.txt unless --no-save.
 """
 from __future__ import annotations
 
 import argparse
+import inspect
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +32,8 @@ import numpy as np
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("body", choices=["rigid", "elastic"])
-    ap.add_argument("liquid", choices=["std", "nt"])
+    ap.add_argument("body", choices=["rigid", "elastic", "foam"])
+    ap.add_argument("liquid", choices=["std", "nt", "task"])
     ap.add_argument("seconds", type=float)
     ap.add_argument("--res", type=int, default=24)
     ap.add_argument("--drop", type=float, default=None)
@@ -38,6 +44,7 @@ def main():
     ap.add_argument("--width", type=float, default=0.12, help="tank width (m)")
     ap.add_argument("--density", type=float, default=500.0, help="the cube's density (kg/m³)")
     ap.add_argument("--every", type=float, default=0.1, help="print every this many seconds")
+    ap.add_argument("--contact-fill", type=float, default=0.97, help="Scene(contact_fill=...), engine/grid.py")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
@@ -47,7 +54,7 @@ def main():
     from fluidlab_core.engine import constitutive
     from fluidlab_core.shapes import Box
 
-    @constitutive.register("liquid_no_tension", params=("lam",), needs_svd=False)
+    @constitutive.register("liquid_no_tension", params=("lam",), needs_svd=False, fluid=True)
     @ti.func
     def liquid_no_tension(F, C, prm, U, sig, V):
         J = ti.min(F.determinant(), 1.0)
@@ -60,9 +67,18 @@ def main():
 
     fl.init("cpu")
     width, level, b, rho = args.width, 0.06, 0.04, args.density
-    cls = M.NewtonianLiquid if args.liquid == "std" else NoTensionLiquid
-    water = cls(f"water_{args.liquid}", density=M.WATER.density, bulk_modulus=M.WATER.bulk_modulus * args.bulk_factor)
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1)
+    from fluidlab_core.tasks import common
+    if args.body == "foam":
+        rho = common.FLOAT_FOAM.density
+    if args.liquid == "task":
+        water = M.NewtonianLiquid("water_task", density=common.WATER.density,
+                                  bulk_modulus=common.WATER.bulk_modulus * args.bulk_factor)
+    else:
+        cls = M.NewtonianLiquid if args.liquid == "std" else NoTensionLiquid
+        water = cls(f"water_{args.liquid}", density=M.WATER.density,
+                    bulk_modulus=M.WATER.bulk_modulus * args.bulk_factor)
+    kw = {"contact_fill": args.contact_fill} if "contact_fill" in inspect.signature(fl.Scene).parameters else {}
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1, **kw)
     c = width / 2
     if args.drop is not None:
         bottom = level + args.drop
@@ -77,6 +93,7 @@ def main():
         scene.add_particles(Box(lo, hi), water)
     rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor
     body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
+        common.FLOAT_FOAM if args.body == "foam" else \
         M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
     scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)), body, name="cube")
     scene.substeps = int(round(scene.stable_substeps() * args.substep_factor))
@@ -91,14 +108,17 @@ def main():
         surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
         xc = sim.positions("cube")
         depth = (surface - (xc[:, 2].min() - 0.5 * s)) / b  # the cube's lowest face below the surface, over b
-        rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
+        share = (xc[:, 2] < surface).mean()  # the cube's particles below the surface
+        rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
     start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
+    fields = f"two velocity fields (contact_fill {sim.model.contact_fill:g})" \
+        if getattr(sim.model, "two_fields", False) else "one velocity field"
     text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
-                      f"(λ × {args.bulk_factor:g}), "
+                      f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
-                      f"{'t s':>5} {'depth / b':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"
+                      f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"
     print(text, flush=True)
     if args.no_save:
         return

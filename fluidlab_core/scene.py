@@ -86,11 +86,13 @@ def _vec3(name, value):
 class Scene:
     def __init__(self, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0), grid_res: int = 64, dt: float = 2e-3,
                  substeps: int = 10, gravity=(0.0, 0.0, -9.81), particle_spacing: float | None = None,
-                 max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0):
+                 max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0,
+                 contact_fill: float = 0.97):
         """lower/upper: the domain walls (m). grid_res: cells along the longest side. dt: one `step` (s),
         split into `substeps`. particle_spacing: sampling lattice (m, default Δx/2). max_speed: fastest
         expected speed for the stability check (m/s). wall_friction: Coulomb coefficient of the domain walls.
-        seed: seeds particle jitter."""
+        seed: seeds particle jitter. contact_fill: the volume fill of a grid node at which fluids and solids
+        share a velocity there (engine/grid.py: two velocity fields; in (0, 2], default 0.97)."""
         self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
         if not np.all(self.lower < self.upper):
             raise ValueError(f"the domain needs lower < upper on every axis, got lower={tuple(self.lower)}, "
@@ -103,6 +105,9 @@ class Scene:
             raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
         if wall_friction < 0:
             raise ValueError(f"wall_friction must be >= 0, got {wall_friction}")
+        if not (0.0 < contact_fill <= 2.0):
+            raise ValueError(f"contact_fill must be in (0, 2] (a node's volume fill), got {contact_fill!r}")
+        self.contact_fill = float(contact_fill)
         self.grid_res = int(grid_res)
         self.dx = float((self.upper - self.lower).max() / self.grid_res)
         self.dt = float(dt)
@@ -540,7 +545,7 @@ class Scene:
         handles = [b.handle for b in self.bodies]
         spec = ModelSpec(
             lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, substeps=self.substeps,
-            gravity=self.gravity, wall_friction=self.wall_friction,
+            gravity=self.gravity, wall_friction=self.wall_friction, contact_fill=self.contact_fill,
             x=np.concatenate([b.points for b in self.bodies]), v=np.concatenate([b.velocity for b in self.bodies]),
             material_index=np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles]),
             body_index=np.concatenate([np.full(h.count, h.body) for h in handles]),

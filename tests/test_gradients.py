@@ -237,14 +237,19 @@ def test_segments_fill_the_buffer():
 
 def test_atomic_scatter_path_matches_finite_differences(f64, monkeypatch):
     """The GPU code path (atomic scatters in P2G and in the gather's backward), run on the CPU with
-    FLUIDLAB_SCATTER_COPIES=0: its action and initial-velocity gradients against central differences."""
+    FLUIDLAB_SCATTER_COPIES=0: its action and initial-velocity gradients against central differences. An
+    elastic block lies on the water, so that both velocity fields of the grid (fluids, solids) and their
+    contact nodes are on that path too."""
     monkeypatch.setenv("FLUIDLAB_SCATTER_COPIES", "0")
     sc = Scene(lower=(0, 0, 0), upper=(0.06, 0.06, 0.06), grid_res=10, dt=1e-3, substeps=7)
     sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.06, 0.06, 0.02)), M.WATER, name="water", velocity=(0.02, 0.01, 0))
+    sc.add_particles(S.Box((0.012, 0.012, 0.02), (0.03, 0.03, 0.032)),
+                     M.Elastic("soft_block", density=800.0, shear_modulus=2e4, lame_lambda=5e4), name="block")
     sc.add_static(S.Box((0.0, 0.0, 0.0), (0.06, 0.015, 0.03)), friction=0.3)
     sc.add_tool(S.Sphere((0, 0, 0), 0.008), pose=(0.03, 0.035, 0.02, 0, 0, 0, 1), softness=400.0, friction=0.2)
     sim = sc.build(requires_grad=True, grad_max_steps=8)
     assert not sim.diff.private, "FLUIDLAB_SCATTER_COPIES=0 selects the atomic path"
+    assert sim.model.two_fields
     rng = np.random.default_rng(1)
     n = sim.n_particles
     loss = losses.Linear(a=rng.normal(size=(n, 3)), b=rng.normal(size=(n, 3)), steps="all")

@@ -14,51 +14,67 @@ def _rigid(name, density):
     return M.Rigid(name, density=density)
 
 
-def test_buoyancy_follows_archimedes():
-    """Three rigid cubes (side b = 6 cm) in water: ρ = 400 and 800 kg/m³ float with the submerged fraction
-    ρ/ρ_w that Archimedes predicts; ρ = 3000 kg/m³ sinks to the floor.
+def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
+    """A 4 cm rigid cube of 500 kg/m³ dropped from 1 cm onto 6 cm of water in a closed 12 cm tank (3-D, 16 cells
+    across, float32 on the CPU) settles at the submerged fraction ρ/ρ_w = 0.50 that Archimedes predicts.
 
-    The cubes start at Archimedes' depth in water filled around them to a level surface. The submerged
-    fraction is the share of a cube's particles below the far-field water level, which does not depend on
-    how the cube turns (a cube at 0.4 is unstable upright and tilts, as real ones do). It is averaged over
-    0.2-0.8 s, after the start and before the slow sinking of floating rigid bodies (a known limitation,
-    engine/rigid.py) adds more than a few percent. Tolerance: ±0.06 on each fraction (half a cell of the
-    cube's 8 cells) and on the difference between the two (0.4).
+    This replaces a test that started the bodies at their answer in a slab two cells thick and so missed the
+    error it was meant to catch: on a single velocity field the cube stopped on a cushion of void about a cell
+    thick and floated at 0.27 (0.09 for an elastic cube), because a liquid and a body that share grid nodes
+    move together and nothing closes the gap between them (engine/grid.py: two velocity fields). The submerged
+    fraction is the cube's lowest face below the far-field surface over its side, averaged over 1.2-2.0 s.
+    Measured at this size: it passes 0.45 at 0.9 s and 0.50 at 1.4 s and goes on sinking slowly (0.55 at 2 s,
+    0.62 at 4 s; the slow sinking of floating rigid bodies, docs/engine.md), so the window's mean is 0.52.
+    Tolerance ±0.05: the window's spread about its mean (±0.04) plus half a particle spacing over the side.
+    The fraction with one velocity field was 0.27, outside it by four times the tolerance.
     """
-    res, width, level, b = 56, 0.42, 0.09, 0.06
+    res, width, level, b, rho = 16, 0.12, 0.06, 0.04, 500.0
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1)
+    scene.add_particles(Box((0, 0, 0), (width, width, level)), M.WATER, name="water")
+    c, bottom = width / 2, level + 0.01
+    scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)),
+                        _rigid("light", rho), name="cube")
+    scene.substeps = scene.stable_substeps()
+    sim = scene.build()
+    dx, s = width / res, scene.particle_spacing
+    samples = []
+    while sim.time < 2.0 - 1e-9:
+        sim.step(n=25)
+        if sim.time > 1.2 - 1e-9:
+            xw = sim.positions("water")
+            far = (np.abs(xw[:, 0] - c) > b) | (np.abs(xw[:, 1] - c) > b)
+            surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
+            samples.append((surface - (sim.positions("cube")[:, 2].min() - 0.5 * s)) / b)
+    fraction = float(np.mean(samples))
+    report("buoyancy, dropped cube", dx_m=dx, fraction=fraction, expected=rho / M.WATER.density,
+           spread=float(np.ptp(samples)))
+    assert abs(fraction - rho / M.WATER.density) < 0.05
+
+
+def test_heavy_cube_rests_on_the_floor_under_water():
+    """A rigid cube of 3000 kg/m³ standing on the floor under 9 cm of water stays there without creeping into
+    the floor: its lowest particle stays within a quarter cell of its resting height, half a particle
+    spacing above the floor (2-D slab, 0.6 s).
+
+    It starts on the floor because sinking through the water is far too slow (docs/engine.md): started 2 cm
+    above the floor it comes down 8 mm in its first second (5 mm with one velocity field), where a body this
+    dense reaches the floor within about 0.1 s."""
+    res, width, level, b = 24, 0.18, 0.09, 0.06
     dx = width / res
     thick = 2 * dx
     scene = fl.Scene(lower=(0, 0, 0), upper=(width, thick, 0.16), grid_res=res, dt=2e-3, substeps=15)
-    blocks = {400.0: 0.09, 3000.0: 0.21, 800.0: 0.33}  # density -> x of the block's centre, left to right
-    expected = {rho: rho / M.WATER.density for rho in blocks}
-    x_edge = 0.0
-    for rho, xc in blocks.items():
-        bottom = max(level - b * expected[rho], 0.0)
-        scene.add_particles(Box((x_edge, 0, 0), (xc - b / 2, thick, level)), M.WATER, name=f"water_left_of_{rho:g}")
-        if bottom > 0:
-            scene.add_particles(Box((xc - b / 2, 0, 0), (xc + b / 2, thick, bottom)), M.WATER,
-                                name=f"water_under_{rho:g}")
-        scene.add_particles(Box((xc - b / 2, 0, bottom), (xc + b / 2, thick, bottom + b)), _rigid(f"r{rho:g}", rho),
-                            name=f"block_{rho:g}")
-        x_edge = xc + b / 2
-    scene.add_particles(Box((x_edge, 0, 0), (width, thick, level)), M.WATER, name="water_right")
+    xc = width / 2
+    scene.add_particles(Box((0, 0, 0), (xc - b / 2, thick, level)), M.WATER, name="water_left")
+    scene.add_particles(Box((xc + b / 2, 0, 0), (width, thick, level)), M.WATER, name="water_right")
+    scene.add_particles(Box((xc - b / 2, 0, 0), (xc + b / 2, thick, b)), _rigid("heavy", 3000.0), name="block")
     sim = scene.build()
-    samples = []
-    while sim.time < 0.8:
-        sim.step(n=5)
-        if sim.time >= 0.2:
-            x = np.concatenate([sim.positions("water_left_of_400"), sim.positions("water_right")])
-            far = (x[:, 0] < 0.045) | (x[:, 0] > width - 0.045)  # away from the blocks
-            surface = np.percentile(x[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
-            fractions = [(sim.positions(f"block_{rho:g}")[:, 2] < surface).mean() for rho in (400.0, 800.0)]
-            samples.append(fractions + [sim.positions("block_3000")[:, 2].min() - 0.25 * dx])
-    f400, f800, floor_gap = np.mean(samples, axis=0)
-    report("buoyancy", dx_m=dx, fraction400=f400, expected400=expected[400.0], fraction800=f800,
-           expected800=expected[800.0], difference=f800 - f400, heavy_bottom_m=floor_gap)
-    assert abs(f400 - expected[400.0]) < 0.06
-    assert abs(f800 - expected[800.0]) < 0.06
-    assert abs((f800 - f400) - (expected[800.0] - expected[400.0])) < 0.06
-    assert floor_gap < dx
+    rest = 0.5 * scene.particle_spacing
+    lowest = []
+    for _ in range(6):
+        sim.step(n=50)
+        lowest.append(float(sim.positions("block")[:, 2].min()))
+    report("heavy cube", dx_m=dx, lowest_min_m=min(lowest), lowest_max_m=max(lowest), rest_m=rest)
+    assert rest - 0.25 * dx < min(lowest) and max(lowest) < rest + 0.25 * dx
 
 
 def test_colliding_elastic_bodies_exchange_and_conserve_momentum():

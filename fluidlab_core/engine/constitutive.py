@@ -54,13 +54,16 @@ class ConstitutiveModel:
     params: tuple[str, ...]
     needs_svd: bool
     func: object  # ti.func (F, C, prm, U, sig, V) -> (F_new, tau)
+    fluid: bool = False  # a fluid has a velocity field of its own on the grid where it does not touch solids (grid.py)
 
 
 MODELS: dict[str, ConstitutiveModel] = {}
 
 
-def register(name: str, params, needs_svd: bool):
-    """Decorator registering a Taichi function as constitutive model `name` with the named parameters."""
+def register(name: str, params, needs_svd: bool, fluid: bool = False):
+    """Decorator registering a Taichi function as constitutive model `name` with the named parameters. A `fluid`
+    model (one without shear memory: the liquids) moves with the fluids' velocity field of the grid, the others
+    with the solids' one; the two are one where they touch (grid.field_velocity)."""
     params = tuple(params)
     if not params or not all(isinstance(p, str) and p.isidentifier() for p in params):
         raise ValueError(f"constitutive model {name!r}: params must be one or more identifiers, got {params!r}")
@@ -71,7 +74,7 @@ def register(name: str, params, needs_svd: bool):
         old = MODELS.get(name)
         if old is not None and old.func is not func:
             raise ValueError(f"a constitutive model named {name!r} is already registered")
-        MODELS[name] = ConstitutiveModel(name, params, bool(needs_svd), func)
+        MODELS[name] = ConstitutiveModel(name, params, bool(needs_svd), func, bool(fluid))
         return func
 
     return wrap
@@ -135,14 +138,14 @@ def _liquid(F, lam):
     return Fp, tau
 
 
-@register("liquid", params=("lam",), needs_svd=False)
+@register("liquid", params=("lam",), needs_svd=False, fluid=True)
 @ti.func
 def liquid(F, C, prm, U, sig, V):
     """Weakly compressible liquid: keep only the volume part of F; pressure from J."""
     return _liquid(F, prm.lam)
 
 
-@register("viscous_liquid", params=("lam", "eta"), needs_svd=False)
+@register("viscous_liquid", params=("lam", "eta"), needs_svd=False, fluid=True)
 @ti.func
 def viscous_liquid(F, C, prm, U, sig, V):
     """Liquid plus deviatoric Newtonian viscous stress."""

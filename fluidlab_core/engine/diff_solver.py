@@ -39,12 +39,13 @@ from fluidlab_core.engine.state import StateBuffer
 def slot_bytes(model) -> int:
     """Device memory of one slot of the differentiable solver, with the stores of one substep: x, v, C, F and
     their gradients per particle and slot, the tools' slot fields, and what the forward keeps for the backward
-    (the grid before and after its update, 7 reals a node; the stress and the gather's result, 15 reals a
-    particle, 24 with rigid bodies)."""
+    (the grid before and after its update, 7 reals a node, 15 with two velocity fields; the stress and the
+    gather's result, 15 reals a particle, 24 with rigid bodies)."""
     real_bytes = np.dtype(model.np_real).itemsize
     n = model.n_particles
     out = 2 * real_bytes * (24 * n + 24 * max(model.n_tools, 1))
-    out += real_bytes * (7 * int(np.prod(model.grid_shape)) + (24 if model.has_rigid else 15) * n)
+    per_node = 15 if model.two_fields else 7  # two velocity fields: both fields' grids and the particle volume
+    out += real_bytes * (per_node * int(np.prod(model.grid_shape)) + (24 if model.has_rigid else 15) * n)
     return out
 
 
@@ -92,6 +93,11 @@ class DiffSolver(Solver):
         self.store_m = ti.field(real, shape=shape)
         self.store_mv = ti.Vector.field(3, real, shape=shape)
         self.store_v = ti.Vector.field(3, real, shape=shape)
+        if self.two_fields:  # the fluids' field and the particle volume (grid.py)
+            self.store_m_f = ti.field(real, shape=shape)
+            self.store_mv_f = ti.Vector.field(3, real, shape=shape)
+            self.store_v_f = ti.Vector.field(3, real, shape=shape)
+            self.store_vol = ti.field(real, shape=shape)
         self.store_x_pre = ti.Vector.field(3, real, shape=(n_sub, n))
         self.store_v_pre = ti.Vector.field(3, real, shape=(n_sub, n))
         self.store_tau = ti.Matrix.field(3, 3, real, shape=(n_sub, n))  # the stress, for P2G's backward
@@ -100,6 +106,8 @@ class DiffSolver(Solver):
         self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
         # where the gather's backward scatters ∂L/∂v_i: the per-thread copies (summed afterwards) or the grid
         self._gather_target = self.copies_mv if self.private else self.grid_v.grad
+        if self.two_fields:
+            self._gather_target_f = self.copies_mv_f if self.private else self.grid_v_f.grad
 
     @property
     def substeps(self) -> int:
@@ -232,9 +240,21 @@ class DiffSolver(Solver):
         for p in range(self.n_particles):
             gtau = ti.Matrix.zero(float, 3, 3)
             if self._active(s, p):  # a pool particle not yet emitted scattered nothing
-                gx, gv, gC, gtau_p = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad,
-                                                           self.state.x[s, p], self.state.v[s, p],
-                                                           self.state.C[s, p], self.store_tau[s, p], p)
+                gx, gv, gC, gtau_p = ti.Vector.zero(float, 3), ti.Vector.zero(float, 3), \
+                    ti.Matrix.zero(float, 3, 3), ti.Matrix.zero(float, 3, 3)
+                if ti.static(self.two_fields):
+                    if transfer.is_fluid(self.model, p):
+                        gx, gv, gC, gtau_p = transfer.p2g_backward(
+                            self.model, self.grid_m_f.grad, self.grid_mv_f.grad, self.state.x[s, p],
+                            self.state.v[s, p], self.state.C[s, p], self.store_tau[s, p], p)
+                    else:
+                        gx, gv, gC, gtau_p = transfer.p2g_backward(
+                            self.model, self.grid_m.grad, self.grid_mv.grad, self.state.x[s, p], self.state.v[s, p],
+                            self.state.C[s, p], self.store_tau[s, p], p)
+                else:
+                    gx, gv, gC, gtau_p = transfer.p2g_backward(self.model, self.grid_m.grad, self.grid_mv.grad,
+                                                               self.state.x[s, p], self.state.v[s, p],
+                                                               self.state.C[s, p], self.store_tau[s, p], p)
                 # one thread per particle: plain read-modify-write (Taichi makes `+=` on a field an atomic add)
                 self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx
                 self.state.v.grad[s, p] = self.state.v.grad[s, p] + gv
@@ -247,8 +267,20 @@ class DiffSolver(Solver):
     @ti.kernel
     def grid_update(self, s: ti.i32):
         """Node velocities at the slot-s tool poses, then the tools' advance to slot s + 1 (for autodiff)."""
-        for I in ti.grouped(self.grid_m):
-            self.grid_v[I] = grid.node_velocity(self.model, I, self.grid_m[I], self.grid_mv[I], self.state, s)
+        if ti.static(self.two_fields):
+            # both fields in one loop over (field, node): one inlined copy of the boundary conditions, whose
+            # gradient dominates this kernel's compile time
+            for f, i, j, k in ti.ndrange(2, *self.model.grid_shape):
+                I = ti.Vector([i, j, k])
+                v = grid.field_velocity(self.model, I, f, self.grid_m[I], self.grid_mv[I], self.grid_m_f[I],
+                                        self.grid_mv_f[I], self.grid_vol[I], self.state, s)
+                if f == 0:
+                    self.grid_v[I] = v
+                else:
+                    self.grid_v_f[I] = v
+        else:
+            for I in ti.grouped(self.grid_m):
+                self.grid_v[I] = grid.node_velocity(self.model, I, self.grid_m[I], self.grid_mv[I], self.state, s)
         ti.loop_config(serialize=True)
         for k in range(self.model.n_tools):
             self._advance_tool(self.state, s, s + 1, k)
@@ -293,24 +325,36 @@ class DiffSolver(Solver):
                     self._gather_grad_particle(c, s, p)
             for I in ti.grouped(self.grid_m):
                 g = ti.Vector.zero(float, 3)
+                g_f = ti.Vector.zero(float, 3)
                 for c in range(self.copies):
                     g += self.copies_mv[c, I[0], I[1], I[2]]
                     self.copies_mv[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
-                self._restore_node(s, I, g)
+                    if ti.static(self.two_fields):
+                        g_f += self.copies_mv_f[c, I[0], I[1], I[2]]
+                        self.copies_mv_f[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+                self._restore_node(s, I, g, g_f)
         else:
             for I in ti.grouped(self.grid_m):
-                self._restore_node(s, I, ti.Vector.zero(float, 3))
+                self._restore_node(s, I, ti.Vector.zero(float, 3), ti.Vector.zero(float, 3))
             for p in range(self.n_particles):
                 self._gather_grad_particle(0, s, p)
 
     @ti.func
-    def _restore_node(self, s, I, g_v):
-        """Node I as substep s's grid update found it, with ∂L/∂v_i = g_v and zero mass and momentum gradients."""
+    def _restore_node(self, s, I, g_v, g_v_f):
+        """Node I as substep s's grid update found it, with ∂L/∂v_i = g_v (g_v_f for the fluids' field) and zero
+        mass and momentum gradients."""
         self.grid_m[I] = self.store_m[s, I[0], I[1], I[2]]
         self.grid_mv[I] = self.store_mv[s, I[0], I[1], I[2]]
         self.grid_v.grad[I] = g_v
         self.grid_m.grad[I] = 0.0
         self.grid_mv.grad[I] = ti.Vector.zero(float, 3)
+        if ti.static(self.two_fields):
+            self.grid_m_f[I] = self.store_m_f[s, I[0], I[1], I[2]]
+            self.grid_mv_f[I] = self.store_mv_f[s, I[0], I[1], I[2]]
+            self.grid_vol[I] = self.store_vol[s, I[0], I[1], I[2]]
+            self.grid_v_f.grad[I] = g_v_f
+            self.grid_m_f.grad[I] = 0.0
+            self.grid_mv_f.grad[I] = ti.Vector.zero(float, 3)
 
     @ti.func
     def _gather_grad_particle(self, c, s, p):
@@ -334,8 +378,17 @@ class DiffSolver(Solver):
             self.C_pre.grad[p] = ti.Matrix.zero(float, 3, 3)
         self.x_pre.grad[p] = ti.Vector.zero(float, 3)  # read once: zero for the next substep's projection
         self.v_pre.grad[p] = ti.Vector.zero(float, 3)
-        gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private,
-                                      self.state.x[s, p], self.store_v_pre[s, p], gx, gv, gC)
+        gf = ti.Vector.zero(float, 3)
+        if ti.static(self.two_fields):
+            if transfer.is_fluid(self.model, p):
+                gf = transfer.gather_backward(self.model, self.store_v_f, s, self._gather_target_f, c, self.private,
+                                              self.state.x[s, p], self.store_v_pre[s, p], gx, gv, gC)
+            else:
+                gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private,
+                                              self.state.x[s, p], self.store_v_pre[s, p], gx, gv, gC)
+        else:
+            gf = transfer.gather_backward(self.model, self.store_v, s, self._gather_target, c, self.private,
+                                          self.state.x[s, p], self.store_v_pre[s, p], gx, gv, gC)
         # one thread per particle: a plain read-modify-write (`+=` on a field is an atomic add)
         self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx + gf
 

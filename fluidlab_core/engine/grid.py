@@ -11,6 +11,18 @@ Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
     statics (statics.py), then each tool's contact law at the pose it holds during the substep (tools.py),
     then the domain walls: a node within half a cell of a wall loses its velocity into it (slip, optional
     Coulomb friction μ_w: the tangential speed shrinks by μ_w × the normal speed removed).
+Two velocity fields (scenes with both fluids and solids; constitutive models registered with fluid=True are
+fluids): P2G scatters the fluids' mass and momentum into one field and everything else's into another, and the
+volume of all particles, V⁰_p det F_p, into a third. A node where both fields have mass and whose volume fill
+φ_i = Σ_p w_ip V_p / Δx³ is at least the scene's `contact_fill` (default 0.97) is a contact node: both fields
+get the velocity of their summed mass and momentum, as on a single-velocity grid. Elsewhere each field has
+its own velocity (the same boundary conditions), and G2P gathers each particle from its own field.
+Why: on a single velocity field a liquid and a body interact wherever their stencils share a node, up to
+about 1.5 cells apart, and the gap between them is then carried with them: nothing in an empty gap can close
+it. A body dropped onto water stopped on a cushion of void about a cell thick and floated far too high (a
+cube of half water's density at 0.09 of its height below the surface at 16 cells, 0.27 at 24, Archimedes
+0.50; bench/buoyancy_3d.py, docs/engine.md). The fill test makes contact where the materials meet without a
+void between them; a gap closes under the forces that act on each side.
 After G2P, particles inside a static, inside a tool that keeps them out, or past a wall are put back on its
 surface and lose their velocity into it (`project`).
 
@@ -49,6 +61,24 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
                                            state.tool_v_real[k, s], state.tool_w_real[k, s])
         vn = walls(model, xn, vn)
     return vn
+
+
+@ti.func
+def in_contact(model: ti.template(), m_s, m_f, vol):
+    """Whether a node with solid mass m_s, fluid mass m_f and particle volume vol (m³) is a contact node."""
+    return m_s > model.mass_floor and m_f > model.mass_floor and vol * model.inv_dx ** 3 >= model.contact_fill
+
+
+@ti.func
+def field_velocity(model: ti.template(), I, fluid, m_s, mv_s, m_f, mv_f, vol, state: ti.template(), s):
+    """Velocity of node I in the solids' (fluid = 0) or the fluids' (fluid = 1) field: from that field's mass
+    and momentum, or at a contact node from both (node_velocity). Arithmetic selection, exact for 0/1 weights,
+    rather than locals written in branches (Taichi's reverse mode)."""
+    a = ti.cast(fluid, float)
+    c = ti.cast(in_contact(model, m_s, m_f, vol), float)
+    m = (1.0 - c) * ((1.0 - a) * m_s + a * m_f) + c * (m_s + m_f)
+    mv = (1.0 - c) * ((1.0 - a) * mv_s + a * mv_f) + c * (mv_s + mv_f)
+    return node_velocity(model, I, m, mv, state, s)
 
 
 @ti.func

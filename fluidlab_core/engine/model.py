@@ -62,6 +62,7 @@ class ModelSpec:
     emitters: list = field(default_factory=list)  # emitters.EmitterSpec
     emitter_of: np.ndarray | None = None  # (N,) the emitter whose pool a particle belongs to, or -1
     pool_index: np.ndarray | None = None  # (N,) its place in that emitter's emission order
+    contact_fill: float = 0.97  # node volume fill at which fluids and solids share a velocity (grid.py)
 
 
 @ti.data_oriented
@@ -93,6 +94,10 @@ class Model:
         names = sorted({m.model for m in spec.materials})
         self.constitutive = [constitutive.get(name) for name in names]
         self.svd_models = [k for k, m in enumerate(self.constitutive) if m.needs_svd]
+        # fluids and solids each have a velocity field on the grid when a scene has both (grid.field_velocity)
+        self.fluid_models = [k for k, m in enumerate(self.constitutive) if m.fluid]
+        self.two_fields = 0 < len(self.fluid_models) < len(self.constitutive)
+        self.contact_fill = float(spec.contact_fill)
         np_real = self.np_real
         self._uploads = []  # (field, numpy data) to upload once everything is allocated (module docstring)
         self.params = []

@@ -3,7 +3,8 @@
 One substep (formulas in transfer.py, grid.py, constitutive.py, tools.py, rigid.py), as kernels in physical
 order:
 
-    P2G          strain update, constitutive model, scatter of mass and momentum
+    P2G          strain update, constitutive model, scatter of mass and momentum (into two velocity fields,
+                 the fluids' and the solids', and the particles' volume, when a scene has both: grid.py)
     grid update  gravity, statics, tools, walls
     tools        poses advance: p ← p + Δt v, R ← exp([ω]× Δt) R
     G2P          gather of velocity and affine velocity, advection, projection out of statics and walls
@@ -51,10 +52,20 @@ class Solver:
         self.private = self.scatter_copies > 0
         self.copies = max(self.scatter_copies, 1)
         self.chunk = -(-n // self.copies)
+        self.two_fields = model.two_fields
+        if self.two_fields:  # the fluids' velocity field (grid.py); grid_m, grid_mv, grid_v are the solids'
+            self.grid_m_f = ti.field(real, shape=model.grid_shape, needs_grad=g)  # fluids' node mass (kg)
+            self.grid_mv_f = ti.Vector.field(3, real, shape=model.grid_shape, needs_grad=g)  # (kg m/s)
+            self.grid_v_f = ti.Vector.field(3, real, shape=model.grid_shape, needs_grad=g)  # after BCs (m/s)
+            self.grid_vol = ti.field(real, shape=model.grid_shape)  # all particles' volume at the node (m³)
         if self.private:
             shape = (self.copies,) + tuple(model.grid_shape)
             self.copies_m = ti.field(real, shape=shape)  # per-thread node mass (kg)
             self.copies_mv = ti.Vector.field(3, real, shape=shape)  # per-thread node momentum, or its gradient
+            if self.two_fields:
+                self.copies_m_f = ti.field(real, shape=shape)  # the same for the fluids' field
+                self.copies_mv_f = ti.Vector.field(3, real, shape=shape)
+                self.copies_vol = ti.field(real, shape=shape)  # per-thread particle volume (m³)
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -91,6 +102,10 @@ class Solver:
             for I in ti.grouped(self.grid_m):
                 self.grid_m[I] = 0.0
                 self.grid_mv[I] = ti.Vector.zero(float, 3)
+                if ti.static(self.two_fields):
+                    self.grid_m_f[I] = 0.0
+                    self.grid_mv_f[I] = ti.Vector.zero(float, 3)
+                    self.grid_vol[I] = 0.0
             for p in range(self.n_particles):
                 if ti.static(host_twist):
                     if p == 0:
@@ -104,11 +119,29 @@ class Solver:
                 m, mv = transfer.reduce_copies(self.copies_m, self.copies_mv, self.copies, I)
             else:
                 m, mv = self.grid_m[I], self.grid_mv[I]
-            vn = grid.node_velocity(self.model, I, m, mv, state, s_in)
-            self.grid_m[I] = m
-            self.grid_v[I] = vn
-            if ti.static(keep):
-                self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
+            if ti.static(self.two_fields):
+                m_f, mv_f, vol = 0.0, ti.Vector.zero(float, 3), 0.0
+                if ti.static(self.private):
+                    m_f, mv_f = transfer.reduce_copies(self.copies_m_f, self.copies_mv_f, self.copies, I)
+                    vol = transfer.reduce_scalar_copies(self.copies_vol, self.copies, I)
+                else:
+                    m_f, mv_f, vol = self.grid_m_f[I], self.grid_mv_f[I], self.grid_vol[I]
+                vn = grid.field_velocity(self.model, I, 0, m, mv, m_f, mv_f, vol, state, s_in)
+                vn_f = grid.field_velocity(self.model, I, 1, m, mv, m_f, mv_f, vol, state, s_in)
+                self.grid_m[I] = m
+                self.grid_v[I] = vn
+                self.grid_m_f[I] = m_f
+                self.grid_v_f[I] = vn_f
+                if ti.static(keep):
+                    self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
+                    self.store_m_f[s_in, I], self.store_mv_f[s_in, I], self.store_v_f[s_in, I] = m_f, mv_f, vn_f
+                    self.store_vol[s_in, I] = vol
+            else:
+                vn = grid.node_velocity(self.model, I, m, mv, state, s_in)
+                self.grid_m[I] = m
+                self.grid_v[I] = vn
+                if ti.static(keep):
+                    self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
         # G2P (and the tools' advance: nothing reads their poses after the grid update, except a nozzle that a
         # tool carries or a tool that keeps particles out, whose particles then read slot s_in: the advance then
         # waits for the end of the loop)
@@ -135,7 +168,14 @@ class Solver:
     @ti.func
     def _g2p(self, state: ti.template(), s_in, s_out, keep: ti.template(), p):
         """G2P of particle p: gather, advection, projection out of statics and walls."""
-        new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
+        new_v, new_C = ti.Vector.zero(float, 3), ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.two_fields):
+            if transfer.is_fluid(self.model, p):
+                new_v, new_C = transfer.gather(self.model, self.grid_v_f, state.x[s_in, p])
+            else:
+                new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
+        else:
+            new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
         xp = state.x[s_in, p] + self.model.dt * new_v
         if ti.static(keep):
             self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
@@ -193,7 +233,25 @@ class Solver:
         if ti.static(keep):
             self.store_tau[s_in, p] = tau
         if active:  # a pool particle not yet emitted adds nothing to the grid (F = I, τ = 0 until it leaves)
-            if ti.static(self.private):
+            if ti.static(self.two_fields):
+                vol = self.model.rest_volume[p] * state.F[s_in, p].determinant()
+                if ti.static(self.private):
+                    transfer.scatter_volume(self.model, self.copies_vol, c, True, state.x[s_in, p], vol)
+                    if transfer.is_fluid(self.model, p):
+                        transfer.scatter(self.model, self.copies_m_f, self.copies_mv_f, c, True, state.x[s_in, p],
+                                         state.v[s_in, p], Cp, tau, p)
+                    else:
+                        transfer.scatter(self.model, self.copies_m, self.copies_mv, c, True, state.x[s_in, p],
+                                         state.v[s_in, p], Cp, tau, p)
+                else:
+                    transfer.scatter_volume(self.model, self.grid_vol, c, False, state.x[s_in, p], vol)
+                    if transfer.is_fluid(self.model, p):
+                        transfer.scatter(self.model, self.grid_m_f, self.grid_mv_f, c, False, state.x[s_in, p],
+                                         state.v[s_in, p], Cp, tau, p)
+                    else:
+                        transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p],
+                                         state.v[s_in, p], Cp, tau, p)
+            elif ti.static(self.private):
                 transfer.scatter(self.model, self.copies_m, self.copies_mv, c, True, state.x[s_in, p],
                                  state.v[s_in, p], Cp, tau, p)
             else:

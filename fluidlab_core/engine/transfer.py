@@ -44,6 +44,16 @@ def needs_svd(model: ti.template(), p):
 
 
 @ti.func
+def is_fluid(model: ti.template(), p):
+    """Whether particle p moves with the fluids' velocity field (grid.py: two velocity fields)."""
+    out = False
+    for k in ti.static(model.fluid_models):
+        if model.model[p] == k:
+            out = True
+    return out
+
+
+@ti.func
 def stress(model: ti.template(), p, F_trial, C):
     """(F_new, τ) of particle p's constitutive model, unrolled over the models present. The SVD is computed at
     one place for every model that needs it: one inlined copy per model made a scene with three such models
@@ -88,6 +98,29 @@ def scatter(model: ti.template(), target_m: ti.template(), target_mv: ti.templat
         else:
             target_mv[base + offset] += weight * (momentum + affine @ dpos)
             target_m[base + offset] += weight * mp
+
+
+@ti.func
+def scatter_volume(model: ti.template(), target: ti.template(), c, private: ti.template(), xp, vol):
+    """The particle volume vol (m³) at xp onto the nodes of its stencil (the contact test of grid.py)."""
+    base, fx, w = stencil(model, xp)
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        if ti.static(private):
+            i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+            target[c, i, j, k] = target[c, i, j, k] + weight * vol
+        else:
+            target[base + offset] += weight * vol
+
+
+@ti.func
+def reduce_scalar_copies(copies: ti.template(), n_copies: ti.template(), I):
+    """Node I of a scalar field summed over its grid copies, which are zeroed for the next substep."""
+    out = 0.0
+    for c in range(n_copies):
+        out += copies[c, I[0], I[1], I[2]]
+        copies[c, I[0], I[1], I[2]] = 0.0
+    return out
 
 
 @ti.func
