@@ -20,8 +20,8 @@ its own velocity (the same boundary conditions), and G2P gathers each particle f
 Why: on a single velocity field a liquid and a body interact wherever their stencils share a node, up to
 about 1.5 cells apart, and the gap between them is then carried with them: nothing in an empty gap can close
 it. A body dropped onto water stopped on a cushion of void about a cell thick and floated far too high (a
-cube of half water's density at 0.09 of its height below the surface at 16 cells, 0.27 at 24, Archimedes
-0.50; bench/buoyancy_3d.py, docs/engine.md). The fill test makes contact where the materials meet without a
+rigid cube of half water's density at 0.25 of its side below the surface after 1 s at 16 cells, an elastic one
+on a mound above it; Archimedes 0.50; bench/buoyancy_3d.py, docs/engine.md). The fill test makes contact where the materials meet without a
 void between them; a gap closes under the forces that act on each side.
 After G2P, particles inside a static, inside a tool that keeps them out, or past a wall are put back on its
 surface and lose their velocity into it (`project`).
