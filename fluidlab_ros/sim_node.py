@@ -156,14 +156,31 @@ class Stream:
     fluid_pending: list = field(default_factory=list)  # clouds that came before the recording's metadata
     mirror: tuple = (-1, None)  # (k, twin q as plan command k went out) of the last plan row the follower read
 
+    # The goal's thread, the node's shutdown and the follower thread all reach the buffer; the follower closes
+    # it when the stream ends. The lock keeps a stop request or a read from meeting a buffer half closed (CI
+    # once: the goal's loop read the stop flag just after the follower closed the buffer of a killed stream
+    # process, and the goal died with an AttributeError instead of reporting the stop).
+    _buf_lock: threading.Lock = field(default_factory=threading.Lock)
+    _final_stop_reason: str = ""  # the buffer's stop reason when it was closed
+
     def request_stop(self, reason: str):
-        """Ask the stream for a ramp to rest (the first reason is kept)."""
-        if self.buf is not None:
-            self.buf.request_stop(reason)
+        """Ask the stream for a ramp to rest (the first reason is kept); a stream that has ended ignores it."""
+        with self._buf_lock:
+            if self.buf is not None:
+                self.buf.request_stop(reason)
 
     @property
     def stop_reason(self) -> str:
-        return self.buf.stop_reason() if self.buf is not None else ""
+        with self._buf_lock:
+            return self.buf.stop_reason() if self.buf is not None else self._final_stop_reason
+
+    def close_buffer(self):
+        """The stream has ended: keep its stop reason and release the shared buffer."""
+        with self._buf_lock:
+            buf, self.buf = self.buf, None
+            if buf is not None:
+                self._final_stop_reason = buf.stop_reason()
+                buf.close()
 
 
 class SimNode(Node):
@@ -931,7 +948,7 @@ class SimNode(Node):
         finally:
             stream.late_ticks, stream.max_late = int(buf.ints[LATE_TICKS]), float(buf.floats[MAX_LATE])
             stream.phase = "done"
-            buf.close()
+            stream.close_buffer()
             stream.done.set()
 
     def _take_over(self, stream: Stream, failure: str, n_task0: int, n_task1: int, fluid_every: int, seen: int):
