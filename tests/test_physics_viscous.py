@@ -18,7 +18,9 @@ def test_viscous_vortex_decays_at_the_navier_stokes_rate():
     Measured as well, and printed: over 50 ms the excess grows to 1.7-2.4× 2νk² (and the inviscid rate
     fluctuates between 7 and 15 /s), independently of the amplitude. It is the scheme's numerical dissipation,
     not the viscous stress: over 100 ms the excess is 4.65× at 24 cells and 2.44× at 48
-    (bench/numerical_dissipation.py, docs/engine.md). Closing that gap is open work."""
+    (bench/numerical_dissipation.py, docs/engine.md). It is at the domain walls: the slip condition acts half a
+    cell inside the liquid and brakes the wall layer, which the viscosity spreads inward; away from the walls the
+    vortex decays at 0.91 × the Navier–Stokes rate (bench/vortex_walls.py). Closing that gap is open work."""
     baseline, k = _vortex_decay_rate(M.WATER, duration=0.01, every=1)
     baseline_50ms, _ = _vortex_decay_rate(M.WATER, duration=0.05)
     for eta in (5.0, 20.0):
