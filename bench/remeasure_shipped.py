@@ -4,7 +4,7 @@
 
 Each task's shipped small trajectory (trajectories/<task>/*_small.json) is replayed on the current engine as
 tests/test_tasks.py replays it; its metadata's `final_loss` becomes the replayed loss, and the loss its optimiser
-recorded moves to `optimised_loss` (kept from the first re-measurement), with `remeasured` saying why and when.
+recorded moves to `optimised_loss` (kept from the first re-measurement), with `remeasured` saying why and when (each re-measurement appended).
 The trajectory itself and its video are not changed: re-optimising and re-shipping (`bench/ship_best.py`) is the
 real fix; this keeps the shipped files honest until then. Writes each file atomically.
 """
@@ -45,7 +45,8 @@ def main():
         meta = doc["metadata"]
         meta.setdefault("optimised_loss", meta["final_loss"])
         meta["final_loss"] = loss
-        meta["remeasured"] = f"{datetime.date.today().isoformat()}: {args.why}"
+        why = f"{datetime.date.today().isoformat()}: {args.why}"
+        meta["remeasured"] = f"{meta['remeasured']}; {why}" if meta.get("remeasured") else why  # every change kept
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json.tmp")
         with os.fdopen(fd, "w") as f:
             json.dump(doc, f, indent=1)
