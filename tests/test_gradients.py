@@ -36,7 +36,9 @@ def f64():
 def build_scene():
     """Bodies at least two cells from the walls and moving: at rest against a wall, a node's velocity sits
     exactly on the kink of the wall condition (v·n < 0), where central differences average two one-sided
-    slopes."""
+    slopes. No face of a static or a tool on a plane of nodes (nodes lie at k Δx, Δx = 8 mm): a node at φ = 0
+    is in or out of the contact by the finite difference's step (with the soft tool's faces at x = 16 and
+    24 mm the tool-position check read −13,165 against −164)."""
     sc = Scene(lower=(0, 0, 0), upper=(0.12, 0.08, 0.08), grid_res=15, dt=1e-3, substeps=13)
     sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.12, 0.068, 0.012)), M.WATER, name="water", velocity=(0.03, 0.02, -0.01))
     low, high = (0.016, 0.02), (0.032, 0.035)
@@ -49,7 +51,7 @@ def build_scene():
                      velocity=(0.05, -0.05, 0.0))
     sc.add_static(S.Box((0.0, 0.07, 0.0), (0.12, 0.08, 0.03)), friction=0.3)
     box = ((0.0, 0.0, 0.0), (0.12, 0.08, 0.08))
-    sc.add_tool(S.Box((-0.004, -0.004, -0.02), (0.004, 0.004, 0.02)), pose=(0.02, 0.055, 0.03, 0, 0, 0, 1),
+    sc.add_tool(S.Box((-0.004, -0.004, -0.02), (0.004, 0.004, 0.02)), pose=(0.0203, 0.055, 0.03, 0, 0, 0, 1),
                 name="soft", softness=400.0, friction=0.2, workspace=box)
     sc.add_tool(S.Sphere((0, 0, 0), 0.008), pose=(0.095, 0.055, 0.02, 0, 0, 0, 1), name="hard", workspace=box)
     sim = sc.build(requires_grad=True)
@@ -245,7 +247,7 @@ def test_atomic_scatter_path_matches_finite_differences(f64, monkeypatch):
     sc.add_particles(S.Box((0.0, 0.0, 0.0), (0.06, 0.06, 0.02)), M.WATER, name="water", velocity=(0.02, 0.01, 0))
     sc.add_particles(S.Box((0.012, 0.012, 0.02), (0.03, 0.03, 0.032)),
                      M.Elastic("soft_block", density=800.0, shear_modulus=2e4, lame_lambda=5e4), name="block")
-    sc.add_static(S.Box((0.0, 0.0, 0.0), (0.06, 0.015, 0.03)), friction=0.3)
+    sc.add_static(S.Box((0.0, 0.0, 0.0), (0.06, 0.015, 0.0297)), friction=0.3)  # its top off the node plane 5 Δx
     sc.add_tool(S.Sphere((0, 0, 0), 0.008), pose=(0.03, 0.035, 0.02, 0, 0, 0, 1), softness=400.0, friction=0.2)
     sim = sc.build(requires_grad=True, grad_max_steps=8)
     assert not sim.diff.private, "FLUIDLAB_SCATTER_COPIES=0 selects the atomic path"

@@ -23,9 +23,11 @@ def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
     thick and floated at 0.27 (0.09 for an elastic cube), because a liquid and a body that share grid nodes
     move together and nothing closes the gap between them (engine/grid.py: two velocity fields). The submerged
     fraction is the cube's lowest face below the far-field surface over its side, averaged over 1.2-2.0 s.
-    Measured at this size: it passes 0.45 at 0.9 s and 0.50 at 1.4 s and goes on sinking slowly (0.55 at 2 s,
-    0.62 at 4 s; the slow sinking of floating rigid bodies, docs/engine.md), so the window's mean is 0.52.
-    Tolerance ±0.05: the window's spread about its mean (±0.04) plus half a particle spacing over the side.
+    Measured at this size: it settles within 0.4 s and stays at 0.46 (spread ±0.003 over the window). Before the
+    grid had a row of nodes on each wall (engine/model.py) it passed 0.45 at 0.9 s and 0.50 at 1.4 s and went
+    on sinking (0.55 at 2 s, 0.62 at 4 s): the walls' condition half a cell inside the water braked it. What
+    keeps it 0.04 above Archimedes' depth is open (docs/engine.md). Tolerance ±0.05: the former window's spread
+    (±0.04) plus half a particle spacing over the side.
     The fraction with one velocity field was 0.27, outside it by four times the tolerance.
     """
     res, width, level, b, rho = 16, 0.12, 0.06, 0.04, 500.0

@@ -42,6 +42,9 @@ def test_contact_law_at_the_grid_nodes(softness):
         expected = (phi < 0).astype(float)
     else:
         expected = np.where(phi < 5.0 / softness, np.minimum(np.exp(-softness * phi), 1.0), 0.0)
+        # the law's cut-off (exp(-5) = 0.0067 to 0) is a step: a node exactly at φ = 5/k (here z = 4 cm, since the
+        # nodes lie on whole cells) is in or out by the float32 rounding of φ, so it is not judged
+        inner &= np.abs(phi - 5.0 / softness) > 1e-6
     err = np.abs(measured - expected)[inner].max()
     report("contact law", softness=str(softness), nodes=int(inner.sum()), nodes_in_contact=int((expected > 0)[inner].sum()),
            max_error=err,

@@ -9,8 +9,9 @@ and w_ip = w₀(f_x) w₁(f_y) w₂(f_z) over the 3×3×3 nodes base + (a, b, c)
 Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
     v_i = (mv)_i / m_i + Δt g                      (nodes under the model's mass floor stay at rest)
     statics (statics.py), then each tool's contact law at the pose it holds during the substep (tools.py),
-    then the domain walls: a node within half a cell of a wall loses its velocity into it (slip, optional
-    Coulomb friction μ_w: the tangential speed shrinks by μ_w × the normal speed removed).
+    then the domain walls: a node on a wall or beyond it loses its velocity into it (slip, optional Coulomb
+    friction μ_w: the tangential speed shrinks by μ_w × the normal speed removed). A row of nodes lies on each
+    wall (model.py), so a flow along a wall keeps its speed into the wall everywhere inside the domain.
 Two velocity fields (scenes with both fluids and solids; constitutive models registered with fluid=True are
 fluids): P2G scatters the fluids' mass and momentum into one field and everything else's into another, and the
 volume of all particles, V⁰_p det F_p, into a third. A node where both fields have mass and whose volume fill
@@ -83,13 +84,13 @@ def field_velocity(model: ti.template(), I, fluid, m_s, mv_s, m_f, mv_f, vol, st
 
 @ti.func
 def walls(model: ti.template(), xn, vn):
-    """Domain walls at lower/upper: nodes within half a cell of a wall lose their velocity into it (slip,
-    optional Coulomb friction). Whole-vector updates only: Taichi's reverse mode mishandles a vector component
-    written inside a runtime branch."""
-    half = 0.5 * model.dx
+    """Domain walls at lower/upper: nodes on a wall or beyond it lose their velocity into it (slip, optional
+    Coulomb friction). Whole-vector updates only: Taichi's reverse mode mishandles a vector component written
+    inside a runtime branch."""
+    tol = 0.01 * model.dx  # the wall row, whatever the rounding of origin + k Δx
     for d in ti.static(range(3)):
-        into = (xn[d] < model.lower[d] + half * 1.01 and vn[d] < 0.0) or \
-            (xn[d] > model.upper[d] - half * 1.01 and vn[d] > 0.0)
+        into = (xn[d] < model.lower[d] + tol and vn[d] < 0.0) or \
+            (xn[d] > model.upper[d] - tol and vn[d] > 0.0)
         if into:
             normal_speed = ti.abs(vn[d])
             vn = vn * (1.0 - ti.Vector.unit(3, d, float))

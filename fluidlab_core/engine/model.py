@@ -6,10 +6,12 @@ materials' parameters, the statics and the tools' shapes as Taichi functions, an
 configuration. What changes (particles, tool poses) is a State (state.py); what drives a step (tool twists)
 is a Control (control.py).
 
-Grid (SI units): Δx = the scene's cell size; nodes sit at origin + k Δx with origin = lower − (PAD − ½) Δx, so
-the outermost wall nodes are half a cell inside the domain walls at `lower` and `upper` (particles, which
-stop about half a cell beyond the last node that stops them, stop at the walls), and PAD cells of grid
-outside the walls keep every particle's 3×3×3 stencil on the grid. Particle rest volume V⁰ = s³ for a
+Grid (SI units): Δx = the scene's cell size; nodes sit at origin + k Δx with origin = lower − PAD Δx, so that
+a row of nodes lies on each domain wall at `lower` and `upper` (the walls' slip condition acts there and
+beyond, grid.py), and PAD cells of grid outside the walls keep every particle's 3×3×3 stencil on the grid.
+Until 2026-11 the nodes sat half a cell off the walls and the condition acted on the first row inside the
+domain, half a cell from the wall, where a flow along the wall still moves into it: that row braked every
+liquid's wall layer (docs/engine.md, "wall placement"). Particle rest volume V⁰ = s³ for a
 lattice spacing s, mass m = ρ V⁰.
 
 Allocation before data: the Model, the solvers and the states allocate their Taichi fields first and the data
@@ -79,10 +81,10 @@ class Model:
         self.dt = float(spec.dt)  # substep (s)
         self.substeps = int(spec.substeps)
         self.step_dt = self.dt * self.substeps
-        self.origin = tuple(float(v) for v in spec.lower - (PAD - 0.5) * self.dx)
+        self.origin = tuple(float(v) for v in spec.lower - PAD * self.dx)
         self.lower = tuple(float(v) for v in spec.lower)
         self.upper = tuple(float(v) for v in spec.upper)
-        self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD
+        self.grid_shape = tuple(int(np.ceil((spec.upper[d] - spec.lower[d]) / self.dx - 1e-9)) + 2 * PAD + 1
                                 for d in range(3))
         self.gravity = tuple(float(g) for g in spec.gravity)
         self.wall_friction = float(spec.wall_friction)
