@@ -25,41 +25,23 @@ BANDS = [(0, 1), (1, 2), (2, 4), (4, 8), (8, 1e9)]
 
 
 def run(res: int, eta: float, ms: float, log) -> None:
-    import fluidlab_core as fl
     from fluidlab_core import materials as M
+    from fluidlab_core.apps.vortex import mode_shape, vortex_simulator
 
     size, amplitude = 0.1, 0.1
     liquid = (M.ViscousLiquid(f"viscous_{eta:g}", density=1000.0, viscosity_pas=eta) if eta > 0
               else M.NewtonianLiquid("water_inviscid", density=1000.0, bulk_modulus=M.WATER.bulk_modulus))
     dx = size / res
-    scene = fl.Scene(lower=(0, 0, 0), upper=(size, 2 * dx, size), grid_res=res, dt=1e-3, substeps=1,
-                     gravity=(0.0, 0.0, 0.0), max_speed=amplitude)
-    scene.add_particles(fl.Box((0, 0, 0), (size, 2 * dx, size)), liquid, name="liquid")
-    scene.substeps = max(1, int(round(scene.stable_substeps())))
-    sim = scene.build()
-    k = math.pi / size
-
-    def mode(x):
-        sx, cx, sz, cz = np.sin(k * x[:, 0]), np.cos(k * x[:, 0]), np.sin(k * x[:, 2]), np.cos(k * x[:, 2])
-        return np.stack([sx * cz, np.zeros_like(sx), -cx * sz], axis=1), (sx, cx, sz, cz)
-
-    state = sim.get_state()
-    shape, (sx, cx, sz, cz) = mode(state.x.astype(np.float64))
-    state.v[:] = amplitude * shape
-    grad = np.zeros((len(sx), 3, 3))  # the mode's velocity gradient, as the APIC affine velocity C
-    grad[:, 0, 0], grad[:, 0, 2] = amplitude * k * cx * cz, -amplitude * k * sx * sz
-    grad[:, 2, 0], grad[:, 2, 2] = amplitude * k * sx * sz, -amplitude * k * cx * cz
-    state.C[:] = grad
-    sim.set_state(state)
+    sim, k = vortex_simulator(liquid, res, size, amplitude)
     nu = eta / 1000.0
-    log(f"\nres {res} cells per L, eta {eta:g} Pa·s (2νk² = {2 * nu * k * k:.2f} /s), {scene.substeps} substeps "
+    log(f"\nres {res} cells per L, eta {eta:g} Pa·s (2νk² = {2 * nu * k * k:.2f} /s), {sim.model.substeps} substeps "
         f"per 1 ms, {sim.n_particles} particles, {time.strftime('%Y-%m-%d')}")
     log(" t ms  a/exp(-2νk²t)  residual/a   local a / a in bands by distance to the wall (cells): "
         + " ".join(f"{lo:g}-{hi:g}" if hi < 1e8 else f"{lo:g}+" for lo, hi in BANDS))
     while sim.time <= ms * 1e-3 + 1e-9:
         x = sim.positions("liquid").astype(np.float64)
         v = sim.velocities("liquid").astype(np.float64)
-        shape, _ = mode(x)
+        shape, _ = mode_shape(x, k)
         a = float((v * shape).sum() / (shape * shape).sum())
         resid = v - a * shape
         wall = np.minimum(np.minimum(x[:, 0], size - x[:, 0]), np.minimum(x[:, 2], size - x[:, 2])) / dx

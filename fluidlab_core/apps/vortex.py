@@ -15,10 +15,15 @@ import math
 import numpy as np
 
 
-def decay_rate(material, res: int = 24, size: float = 0.1, amplitude: float = 0.1, duration: float = 0.2,
-               every: int = 10, substeps: int | None = None, substep_factor: float = 1.0):
-    """(fitted decay rate 1/s, k 1/m, substeps per 1 ms step) of the vortex in `material`. substeps: per 1 ms
-    step (default: the stable count × substep_factor)."""
+def mode_shape(x, k: float):
+    """The mode's velocity shape at positions x (N, 3) and its sines and cosines (sx, cx, sz, cz)."""
+    sx, cx, sz, cz = np.sin(k * x[:, 0]), np.cos(k * x[:, 0]), np.sin(k * x[:, 2]), np.cos(k * x[:, 2])
+    return np.stack([sx * cz, np.zeros_like(sx), -cx * sz], axis=1), (sx, cx, sz, cz)
+
+
+def vortex_simulator(material, res: int = 24, size: float = 0.1, amplitude: float = 0.1,
+                     substeps: int | None = None, substep_factor: float = 1.0):
+    """(simulator, k 1/m) of the slab started on the mode: velocities and their gradient C = ∇v."""
     import fluidlab_core as fl
 
     dx = size / res
@@ -29,23 +34,26 @@ def decay_rate(material, res: int = 24, size: float = 0.1, amplitude: float = 0.
         scene.substeps = max(1, int(round(scene.stable_substeps() * substep_factor)))
     sim = scene.build()
     k = math.pi / size
-
-    def mode(x):
-        sx, cx, sz, cz = np.sin(k * x[:, 0]), np.cos(k * x[:, 0]), np.sin(k * x[:, 2]), np.cos(k * x[:, 2])
-        return np.stack([sx * cz, np.zeros_like(sx), -cx * sz], axis=1), (sx, cx, sz, cz)
-
     state = sim.get_state()
-    shape, (sx, cx, sz, cz) = mode(state.x.astype(np.float64))
+    shape, (sx, cx, sz, cz) = mode_shape(state.x.astype(np.float64), k)
     state.v[:] = amplitude * shape
     grad = np.zeros((len(sx), 3, 3))  # APIC affine velocity C = ∇v
     grad[:, 0, 0], grad[:, 0, 2] = amplitude * k * cx * cz, -amplitude * k * sx * sz
     grad[:, 2, 0], grad[:, 2, 2] = amplitude * k * sx * sz, -amplitude * k * cx * cz
     state.C[:] = grad
     sim.set_state(state)
+    return sim, k
+
+
+def decay_rate(material, res: int = 24, size: float = 0.1, amplitude: float = 0.1, duration: float = 0.2,
+               every: int = 10, substeps: int | None = None, substep_factor: float = 1.0):
+    """(fitted decay rate 1/s, k 1/m, substeps per 1 ms step) of the vortex in `material`. substeps: per 1 ms
+    step (default: the stable count × substep_factor)."""
+    sim, k = vortex_simulator(material, res, size, amplitude, substeps, substep_factor)
     times, amps = [], []
     while sim.time <= duration:
-        shape, _ = mode(sim.positions("liquid"))
+        shape, _ = mode_shape(sim.positions("liquid"), k)
         times.append(sim.time)
         amps.append(float((sim.velocities("liquid") * shape).sum() / (shape * shape).sum()))
         sim.step(n=every)
-    return -np.polyfit(times, np.log(amps), 1)[0], k, scene.substeps
+    return -np.polyfit(times, np.log(amps), 1)[0], k, sim.model.substeps
