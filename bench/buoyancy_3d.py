@@ -100,7 +100,7 @@ def main():
     sim = scene.build()
     dx, s = width / args.res, scene.particle_spacing
     waters = [h for h in sim.handles if h != "cube"]
-    t0, rows = time.time(), []
+    t0, rows, series = time.time(), [], []
     while sim.time < args.seconds - 1e-9:
         sim.step(n=int(round(args.every / scene.dt)))
         xw = np.concatenate([sim.positions(h) for h in waters])
@@ -109,7 +109,9 @@ def main():
         xc = sim.positions("cube")
         depth = (surface - (xc[:, 2].min() - 0.5 * s)) / b  # the cube's lowest face below the surface, over b
         share = (xc[:, 2] < surface).mean()  # the cube's particles below the surface
+        series.append((sim.time, depth, share))
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
+        print(rows[-1], f"({time.time() - t0:.0f} s)", flush=True)  # progress
     start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
     fields = f"two velocity fields (contact_fill {sim.model.contact_fill:g})" \
@@ -118,12 +120,23 @@ def main():
                       f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
-                      f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10}", *rows]) + "\n"
+                      f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10}", *rows,
+                      *per_second(series, rho / M.WATER.density)]) + "\n"
     print(text, flush=True)
     if args.no_save:
         return
     with open(Path(__file__).resolve().parent / "results" / "buoyancy_3d.txt", "a") as f:
         f.write(text + "\n")
+
+
+def per_second(series, expected):
+    """Means of depth / b and share over each whole simulated second (t in (k, k + 1]), against Archimedes."""
+    t, depth, share = (np.array(c) for c in zip(*series))
+    out = [f"means over each second (Archimedes {expected:.2f}):"]
+    for k in range(int(np.floor(t.max() + 1e-9))):
+        m = (t > k + 1e-9) & (t <= k + 1 + 1e-9)
+        out.append(f"  {k:>2}-{k + 1:<2} s  depth / b {depth[m].mean():.3f}  share {share[m].mean():.3f}")
+    return out
 
 
 if __name__ == "__main__":

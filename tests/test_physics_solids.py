@@ -4,7 +4,8 @@ import numpy as np
 
 import fluidlab_core as fl
 from fluidlab_core import materials as M
-from fluidlab_core.shapes import Box, Shape
+from fluidlab_core.shapes import Box
+from fluidlab_core.apps import validation
 from tests.conftest import report
 
 G = 9.81
@@ -30,25 +31,11 @@ def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
     (±0.04) plus half a particle spacing over the side.
     The fraction with one velocity field was 0.27, outside it by four times the tolerance.
     """
-    res, width, level, b, rho = 16, 0.12, 0.06, 0.04, 500.0
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1)
-    scene.add_particles(Box((0, 0, 0), (width, width, level)), M.WATER, name="water")
-    c, bottom = width / 2, level + 0.01
-    scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)),
-                        _rigid("light", rho), name="cube")
-    scene.substeps = scene.stable_substeps()
-    sim = scene.build()
-    dx, s = width / res, scene.particle_spacing
-    samples = []
-    while sim.time < 2.0 - 1e-9:
-        sim.step(n=25)
-        if sim.time > 1.2 - 1e-9:
-            xw = sim.positions("water")
-            far = (np.abs(xw[:, 0] - c) > b) | (np.abs(xw[:, 1] - c) > b)
-            surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
-            samples.append((surface - (sim.positions("cube")[:, 2].min() - 0.5 * s)) / b)
+    rho = 500.0
+    r = validation.floating_cube(res=16, density=rho, seconds=2.0, drop=0.01, every=0.05)
+    samples = r["fractions"][r["times"] > 1.2 - 1e-9]
     fraction = float(np.mean(samples))
-    report("buoyancy, dropped cube", dx_m=dx, fraction=fraction, expected=rho / M.WATER.density,
+    report("buoyancy, dropped cube", dx_m=r["dx"], fraction=fraction, expected=rho / M.WATER.density,
            spread=float(np.ptp(samples)))
     assert abs(fraction - rho / M.WATER.density) < 0.05
 
@@ -154,46 +141,6 @@ def test_more_plastic_bodies_dissipate_more_energy():
         assert kept[0] > 0.6 and kept[-1] < 0.5
 
 
-class _Layer(Shape):
-    """Liquid above (or below) the interface z = mid + amp·cos(2πx/W) in a slab [0, W] × [0, th] × [z0, z1]."""
-
-    def __init__(self, width, thick, z0, z1, mid, amp, above):
-        self.box = Box((0.0, 0.0, z0), (width, thick, z1))
-        self.width, self.mid, self.amp, self.above = width, mid, amp, above
-
-    def bounds(self):
-        return self.box.bounds()
-
-    def sdf(self, points):
-        points = np.asarray(points)
-        interface = self.mid + self.amp * np.cos(2 * np.pi * points[..., 0] / self.width)
-        side = interface - points[..., 2] if self.above else points[..., 2] - interface
-        return np.maximum(self.box.sdf(points), side)
-
-
-def _two_layers(top, bottom, res=64, width=0.1, height=0.2, amp=0.005, duration=0.2):
-    """Run the seeded two-layer slab; return times, spike amplitudes (m) and the top layer's centroid drop (m).
-
-    The spike is where the interface starts lowest (x = W/2): its amplitude is how far below the mid-plane
-    the top liquid reaches there."""
-    dx = height / res
-    thick = 2 * dx
-    mid = height / 2
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, thick, height), grid_res=res, dt=1e-3, substeps=12)
-    scene.add_particles(_Layer(width, thick, 0.0, height, mid, amp, above=False), bottom, name="bottom")
-    scene.add_particles(_Layer(width, thick, 0.0, height, mid, amp, above=True), top, name="top")
-    sim = scene.build()
-    z0 = sim.positions("top")[:, 2].mean()
-    times, spikes = [], []
-    while sim.time <= duration:
-        x = sim.positions("top")
-        near_axis = np.abs(x[:, 0] - width / 2) < dx
-        times.append(sim.time)
-        spikes.append(mid - x[near_axis, 2].min())
-        sim.step(n=10)
-    return np.array(times), np.array(spikes), z0 - sim.positions("top")[:, 2].mean(), dx
-
-
 def test_rayleigh_taylor_heavy_over_light_overturns():
     """A heavy liquid (3000 kg/m³) above a light one (1000 kg/m³), the interface seeded with a 5 mm cosine of
     wavelength W = 0.1 m. Linear theory (inviscid, deep layers) grows the mode as exp(σt) with
@@ -205,10 +152,10 @@ def test_rayleigh_taylor_heavy_over_light_overturns():
     k = 2 * np.pi / 0.1
     atwood = (M.RT_HEAVY.density - M.RT_LIGHT.density) / (M.RT_HEAVY.density + M.RT_LIGHT.density)
     sigma_theory = np.sqrt(atwood * k * G)
-    times, spikes, drop_rt, dx = _two_layers(M.RT_HEAVY, M.RT_LIGHT)
-    window = (times >= 0.04) & (times <= 0.2)
-    sigma = np.polyfit(times[window], np.log(spikes[window]), 1)[0]
-    u_times, u_spikes, drop_uniform, _ = _two_layers(M.RT_LIGHT, M.RT_LIGHT)
+    rt = validation.rayleigh_taylor(M.RT_HEAVY, M.RT_LIGHT, res=64, substeps=12)
+    sigma, spikes, drop_rt, dx = rt["sigma"], rt["spikes"], rt["drop"], rt["dx"]
+    uniform = validation.rayleigh_taylor(M.RT_LIGHT, M.RT_LIGHT, res=64, substeps=12)
+    u_spikes, drop_uniform = uniform["spikes"], uniform["drop"]
     report("rayleigh-taylor", dx_m=dx, growth_rate_per_s=sigma, theory_per_s=sigma_theory,
            ratio=sigma / sigma_theory, final_spike_m=spikes[-1], heavy_centroid_drop_m=drop_rt,
            uniform_spike_range_m=(round(u_spikes.min(), 4), round(u_spikes.max(), 4)),

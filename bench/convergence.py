@@ -1,0 +1,244 @@
+"""Convergence under refinement (issue: physics fidelity): the validation scenes of fluidlab_core/apps/validation.py
+and apps/vortex.py, each at three resolutions, float32 on the CPU, with the observed order of convergence.
+
+    python bench/convergence.py [--only dam hydro rt vortex float] [--quick]
+
+Writes bench/results/convergence_cpu.json (one entry per study, replaced when that study is re-run, so the studies
+can run in separate processes) and renders all of them to bench/results/convergence_cpu.txt.
+
+Studies (error e = |measured − reference|; the observed order between two resolutions is
+p = ln(e₁/e₂)/ln(Δx₁/Δx₂), and for the dam break, which has no exact reference, Richardson's
+p = ln((f₁ − f₂)/(f₂ − f₃))/ln 2 from three resolutions in ratio 2):
+- dam: the surge front Z = x/a of a column a = 10 cm (Martin & Moyce 1952) at T = 2.5, at 32, 64 and 128 cells
+  along the 50 cm tank; and its ratio to the measurement (which inviscid, frictionless simulations lead by
+  10–20 %).
+- hydro: water at rest, 12 cm deep, at 8, 16 and 32 cells over the 16 cm box, 1 s, pressure averaged over its
+  last 0.2 s; the slope of p(depth) over ρg (reference 1).
+- rt: Rayleigh–Taylor, A = 0.5, at 16, 32 and 64 cells per wavelength; σ over √(Akg) (reference 1, linear
+  inviscid theory).
+- vortex: the cellular vortex (L = 10 cm, U = 0.1 m/s) at 16, 24 and 32 cells per L: the inviscid decay rate
+  over 50 ms (reference 0) and the viscous excess (η = 5 Pa·s, over 100 ms) over 2νk² (reference 1).
+- float: a 4 cm rigid cube of 500 kg/m³ dropped from 1 cm onto 6 cm of water in a closed 12 cm tank (3-D) at
+  12, 16 and 24 cells across, 1.5 s; the submerged fraction averaged over 1.0–1.5 s (reference 0.50), and over
+  1.0–1.5 s of a 0.8 ρ_w cube at 16 cells (reference 0.80).
+Each run uses the stable substep count of its resolution.
+"""
+from __future__ import annotations
+
+import argparse
+import fcntl
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results"
+JSON = RESULTS / "convergence_cpu.json"
+TEXT = RESULTS / "convergence_cpu.txt"
+
+
+def order(e1, e2, dx1, dx2):
+    if not (e1 > 0 and e2 > 0):
+        return math.nan
+    return math.log(e1 / e2) / math.log(dx1 / dx2)
+
+
+def study_dam(quick):
+    from fluidlab_core.apps import validation
+
+    rows = []
+    for res in ((32, 64) if quick else (32, 64, 128)):
+        t0 = time.time()
+        r = validation.dam_break(res=res, substeps=None)
+        z25 = float(np.interp(2.5, r["times"], r["fronts"]))
+        rows.append(dict(res=res, dx_mm=r["dx"] * 1e3, substeps=r["substeps"], Z_at_2_5=z25,
+                         ratio_min=float(r["ratio"].min()), ratio_max=float(r["ratio"].max()), speed=r["speed"],
+                         seconds=time.time() - t0))
+        print(rows[-1], flush=True)
+    richardson = math.nan
+    if len(rows) == 3:
+        f1, f2, f3 = (row["Z_at_2_5"] for row in rows)
+        if (f1 - f2) * (f2 - f3) > 0:
+            richardson = math.log((f1 - f2) / (f2 - f3)) / math.log(2)
+    return dict(rows=rows, richardson_order=richardson)
+
+
+def study_hydro(quick):
+    from fluidlab_core.apps import validation
+
+    rows = []
+    for res in ((8, 16) if quick else (8, 16, 32)):
+        t0 = time.time()
+        r = validation.water_column(res=res, steps=500, average=100, substeps=None)
+        rows.append(dict(res=res, dx_mm=r["dx"] * 1e3, substeps=r["substeps"], slope_ratio=r["slope_ratio"],
+                         r2=r["r2"], intercept_Pa=r["intercept"], worst_volume_error=r["worst_volume_error"],
+                         error=abs(r["slope_ratio"] - 1.0), seconds=time.time() - t0))
+        print(rows[-1], flush=True)
+    return dict(rows=rows)
+
+
+def study_rt(quick):
+    from fluidlab_core import materials as M
+    from fluidlab_core.apps import validation
+
+    rows = []
+    for res in ((32, 64) if quick else (32, 64, 128)):
+        t0 = time.time()
+        r = validation.rayleigh_taylor(M.RT_HEAVY, M.RT_LIGHT, res=res, substeps=None)
+        ratio = r["sigma"] / r["sigma_theory"]
+        rows.append(dict(res=res, per_wavelength=res // 2, dx_mm=r["dx"] * 1e3, substeps=r["substeps"],
+                         sigma=r["sigma"], ratio=ratio, error=abs(ratio - 1.0), seconds=time.time() - t0))
+        print(rows[-1], flush=True)
+    return dict(rows=rows, sigma_theory=r["sigma_theory"])
+
+
+def study_vortex(quick):
+    from fluidlab_core import materials as M
+    from fluidlab_core.apps import vortex
+
+    inviscid = M.NewtonianLiquid("water_inviscid", density=1000.0, bulk_modulus=M.WATER.bulk_modulus)
+    viscous = M.ViscousLiquid("viscous_5", density=1000.0, bulk_modulus=M.WATER.bulk_modulus, viscosity_pas=5.0)
+    rows = []
+    for res in ((16, 24) if quick else (16, 24, 32)):
+        t0 = time.time()
+        r0, k, sub = vortex.decay_rate(inviscid, res=res, duration=0.05, every=5)
+        r0_long, _, _ = vortex.decay_rate(inviscid, res=res, duration=0.1, every=5)
+        rv, _, _ = vortex.decay_rate(viscous, res=res, duration=0.1, every=5)
+        nu_k2 = 2 * 5.0 / 1000.0 * k * k
+        excess = (rv - r0_long) / nu_k2
+        rows.append(dict(res=res, dx_mm=100.0 / res, substeps=sub, inviscid_rate=r0, viscous_excess=excess,
+                         excess_error=abs(excess - 1.0), seconds=time.time() - t0))
+        print(rows[-1], flush=True)
+    return dict(rows=rows)
+
+
+def study_float(quick):
+    from fluidlab_core.apps import validation
+
+    rows = []
+    cases = [(12, 500.0), (16, 500.0)] if quick else [(12, 500.0), (16, 500.0), (24, 500.0), (16, 800.0)]
+    for res, rho in cases:
+        t0 = time.time()
+        r = validation.floating_cube(res=res, density=rho, seconds=1.5, every=0.05,
+                                     progress=lambda t, f: print(f"  {res} cells, {rho:g} kg/m³: t {t:.2f} s "
+                                                                 f"fraction {f:.3f}", flush=True))
+        window = r["times"] > 1.0 - 1e-9
+        fraction = float(r["fractions"][window].mean())
+        rows.append(dict(res=res, density=rho, dx_mm=r["dx"] * 1e3, substeps=r["substeps"], particles=r["particles"],
+                         fraction=fraction, spread=float(np.ptp(r["fractions"][window])),
+                         share=float(r["shares"][window].mean()), expected=r["expected"],
+                         error=abs(fraction - r["expected"]), seconds=time.time() - t0))
+        print(rows[-1], flush=True)
+    return dict(rows=rows)
+
+
+STUDIES = {"dam": study_dam, "hydro": study_hydro, "rt": study_rt, "vortex": study_vortex, "float": study_float}
+
+
+def with_orders(rows, key="error", extra=lambda row: True):
+    rows = [r for r in rows if extra(r)]
+    out = [math.nan]
+    for a, b in zip(rows, rows[1:]):
+        out.append(order(a[key], b[key], a["dx_mm"], b["dx_mm"]))
+    return rows, out
+
+
+def render(doc: dict) -> str:
+    def fmt(x, spec):
+        return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+    lines = ["Convergence under refinement (bench/convergence.py), float32 CPU, stable substeps at each resolution.",
+             "Observed order p = ln(e1/e2)/ln(dx1/dx2) of the error e against the reference, between a row and the one above.",
+             ""]
+    if "dam" in doc:
+        d = doc["dam"]
+        lines += ["Dam break (Martin & Moyce 1952, a = 10 cm): surge front Z at T = 2.5; ratio to the measurement over "
+                  "0.8 <= T <= 3.4",
+                  f"{'cells':>6} {'dx mm':>6} {'subst':>5} {'Z(2.5)':>7} {'ratio min':>9} {'ratio max':>9} {'dZ/dT':>6} {'s':>6}"]
+        for r in d["rows"]:
+            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['Z_at_2_5']:>7.3f} "
+                         f"{r['ratio_min']:>9.3f} {r['ratio_max']:>9.3f} {r['speed']:>6.3f} {r['seconds']:>6.0f}")
+        lines += [f"Richardson order of Z(2.5) from the three: {fmt(d['richardson_order'], '.2f') or 'n/a'}", ""]
+    if "hydro" in doc:
+        rows, ps = with_orders(doc["hydro"]["rows"])
+        lines += ["Hydrostatics (12 cm of water at rest, 1 s): slope of p(depth) over rho g (reference 1)",
+                  f"{'cells':>6} {'dx mm':>6} {'slope/rhog':>10} {'r2':>7} {'intercept Pa':>12} {'volume err':>10} {'order':>6}"]
+        for r, p in zip(rows, ps):
+            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['slope_ratio']:>10.4f} {r['r2']:>7.4f} "
+                         f"{r['intercept_Pa']:>12.1f} {r['worst_volume_error']:>10.2e} {fmt(p, '6.2f'):>6}")
+        lines.append("")
+    if "rt" in doc:
+        rows, ps = with_orders(doc["rt"]["rows"])
+        lines += [f"Rayleigh-Taylor (A = 0.5, W = 10 cm): sigma over sqrt(Akg) = {doc['rt']['sigma_theory']:.1f} /s "
+                  "(reference 1)",
+                  f"{'cells/W':>7} {'dx mm':>6} {'subst':>5} {'sigma 1/s':>9} {'ratio':>6} {'order':>6}"]
+        for r, p in zip(rows, ps):
+            lines.append(f"{r['per_wavelength']:>7} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['sigma']:>9.2f} "
+                         f"{r['ratio']:>6.3f} {fmt(p, '6.2f'):>6}")
+        lines.append("")
+    if "vortex" in doc:
+        rows = doc["vortex"]["rows"]
+        _, p_inv = with_orders(rows, key="inviscid_rate")
+        _, p_exc = with_orders(rows, key="excess_error")
+        lines += ["Cellular (Taylor-Green) vortex, L = 10 cm: inviscid decay rate over 50 ms (reference 0) and the viscous "
+                  "excess over 100 ms, eta = 5 Pa s, over 2 nu k^2 (reference 1)",
+                  f"{'cells/L':>7} {'dx mm':>6} {'subst':>5} {'inviscid 1/s':>12} {'order':>6} {'excess':>7} {'order':>6}"]
+        for r, a, b in zip(rows, p_inv, p_exc):
+            lines.append(f"{r['res']:>7} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['inviscid_rate']:>12.2f} "
+                         f"{fmt(a, '6.2f'):>6} {r['viscous_excess']:>7.3f} {fmt(b, '6.2f'):>6}")
+        lines.append("")
+    if "float" in doc:
+        rows = doc["float"]["rows"]
+        half, ps = with_orders(rows, extra=lambda r: r["density"] == 500.0)
+        order_of = {id(r): p for r, p in zip(half, ps)}
+        lines += ["Floating cube (3-D, 4 cm rigid cube dropped onto 6 cm of water, 12 cm tank): submerged fraction over "
+                  "1.0-1.5 s (reference rho/rho_w)",
+                  f"{'cells':>6} {'dx mm':>6} {'kg/m3':>6} {'subst':>5} {'fraction':>8} {'spread':>6} {'share':>6} "
+                  f"{'expect':>6} {'order':>6} {'s':>6}"]
+        for r in rows:
+            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['density']:>6.0f} {r['substeps']:>5} {r['fraction']:>8.3f} "
+                         f"{r['spread']:>6.3f} {r['share']:>6.3f} {r['expected']:>6.2f} "
+                         f"{fmt(order_of.get(id(r), math.nan), '6.2f'):>6} {r['seconds']:>6.0f}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def save(name: str, result: dict):
+    """Merge one study into the JSON under a lock (studies may run in parallel processes), re-render the text."""
+    RESULTS.mkdir(exist_ok=True)
+    with open(RESULTS / ".convergence.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        doc = json.loads(JSON.read_text()) if JSON.exists() else {}
+        doc[name] = result
+        for path, text in ((JSON, json.dumps(doc, indent=1)), (TEXT, render(doc))):
+            tmp = path.with_suffix(path.suffix + ".tmp")
+            tmp.write_text(text + "\n")
+            os.replace(tmp, path)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", nargs="+", choices=list(STUDIES), default=list(STUDIES))
+    ap.add_argument("--quick", action="store_true", help="two resolutions each (a smoke run; not saved)")
+    args = ap.parse_args()
+    import fluidlab_core as fl
+
+    fl.init("cpu")
+    for name in args.only:
+        t0 = time.time()
+        print(f"== {name}", flush=True)
+        result = STUDIES[name](args.quick)
+        result["seconds"] = time.time() - t0
+        result["date"] = time.strftime("%Y-%m-%d")
+        if args.quick:
+            print(render({name: result}), flush=True)
+        else:
+            save(name, result)
+            print(render({name: result}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
