@@ -66,46 +66,13 @@ def cube_rise(res: int, seconds: float = 0.15):
     return sim.positions("cube")[:, 2].mean() - z0, scene.substeps
 
 
-def column_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4):
-    """The sound ring of a water column released at rest without its hydrostatic pressure (J = 1): the mean
-    pressure of a one-cell layer of particles at mid-depth every 1 ms. Returns (times, pressures, hydrostatic p, substeps)."""
-    import fluidlab_core as fl
-    from fluidlab_core import materials as M
-
-    width = 0.12
-    dx = width / res
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, width), grid_res=res, dt=1e-3, substeps=1)
-    scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, depth)), M.WATER, name="water")
-    scene.substeps = scene.stable_substeps()
-    sim = scene.build()
-    x0 = sim.positions("water")
-    bottom = np.abs(x0[:, 2] - 0.5 * depth) < 0.5 * dx  # a layer at mid-depth (the wall's half cell aside)
-    times, pressures = [], []
-    while sim.time < seconds - 1e-12:
-        sim.step()
-        times.append(sim.time)
-        pressures.append(float(sim.pressures("water")[bottom].mean()))
-    hydro = 1000.0 * 9.81 * (depth - x0[bottom, 2].mean())
-    return np.array(times), np.array(pressures), hydro, scene.substeps
-
-
-def ring_figures(times, pressures, hydro):
-    """(period s, amplitude of the first swing Pa, its decay rate 1/s, mean over the last half / hydrostatic)
-    from the pressure's extremes."""
-    dev = pressures - hydro
-    peaks = [i for i in range(1, len(dev) - 1) if dev[i] > dev[i - 1] and dev[i] >= dev[i + 1] and dev[i] > 0]
-    period = float(np.median(np.diff(times[peaks]))) if len(peaks) > 2 else float("nan")
-    amp = np.abs(dev[peaks])
-    rate = -np.polyfit(times[peaks], np.log(amp), 1)[0] if len(peaks) > 2 else float("nan")
-    half = len(times) // 2
-    return period, float(amp[0]) if len(amp) else float("nan"), rate, float(pressures[half:].mean() / hydro)
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="fewer resolutions (a smoke run)")
     args = ap.parse_args()
     import fluidlab_core as fl
+
+    from fluidlab_core.apps import validation
 
     fl.init("cpu")
     t_start = time.time()
@@ -153,8 +120,8 @@ def main():
     c = math.sqrt(2.7778e5 / 1000.0)
     out(f"{'cells':>6} {'period ms':>9} {'4H/c ms':>8} {'first swing Pa':>14} {'decay 1/s':>9} {'mean/hydro':>10}")
     for res in ((24,) if args.quick else (24, 48)):
-        times, pressures, hydro, _ = column_ring(res)
-        period, amp, rate, mean = ring_figures(times, pressures, hydro)
+        ring = validation.sound_ring(res)
+        period, amp, rate, mean = (ring[k] for k in ("period", "first_swing", "decay_rate", "mean_over_hydro"))
         out(f"{res:>6} {period * 1e3:>9.1f} {4 * 0.06 / c * 1e3:>8.1f} {amp:>14.0f} {rate:>9.2f} {mean:>10.3f}")
     out("")
     out(f"total {time.time() - t_start:.0f} s")

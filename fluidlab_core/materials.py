@@ -78,6 +78,11 @@ class Material:
         """Dynamic viscosity η (Pa·s), 0 for inviscid materials; sets the explicit viscous time-step limit."""
         return float(self.kernel_params().get("eta", 0.0))
 
+    @property
+    def bulk_viscosity(self) -> float:
+        """Bulk viscosity ζ (Pa·s), 0 for materials without one; it too limits the explicit time step."""
+        return float(self.kernel_params().get("zeta", 0.0))
+
     def wave_speed(self) -> float:
         """P-wave speed sqrt((λ + 2μ)/ρ) in m/s: the fastest signal the explicit solver must resolve. A material
         of a model without μ and λ overrides this (the build's stability check calls it)."""
@@ -195,6 +200,25 @@ class ViscousLiquid(NewtonianLiquid):
 
     def kernel_params(self):
         return {"lam": self.bulk_modulus, "eta": self.viscosity_pas}
+
+
+@dataclass(frozen=True)
+class DampedLiquid(NewtonianLiquid):
+    """Newtonian liquid plus a bulk viscosity ζ (Pa·s): τ_b = ζ J (∇·v) I. It damps the sound waves that the
+    weakly compressible liquid otherwise keeps (a standing wave of wavenumber k decays at ζ k²/(2ρ); the ring
+    of a column of depth H, k = π/2H) and does nothing to a divergence-free flow. A resolution-aware choice is
+    ζ = α ρ c Δx with α of order 0.1-1 (c the sound speed): its time-step limit ρΔx²/(6ζ) = Δx/(6αc) then
+    stays of the order of the sound-speed CFL limit at every resolution. bench/sound_ring.py measures it."""
+
+    bulk_viscosity_pas: float = 10.0
+    model: ClassVar[str] = "damped_liquid"
+
+    def __post_init__(self):
+        super().__post_init__()
+        _check_positive(self, bulk_viscosity_pas=self.bulk_viscosity_pas)
+
+    def kernel_params(self):
+        return {"lam": self.bulk_modulus, "zeta": self.bulk_viscosity_pas}
 
 
 # --- catalogue (paper values mapped by the similarity above) -------------------------------------------

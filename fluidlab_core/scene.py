@@ -12,7 +12,7 @@ are sampled on a lattice of spacing Δx/2 (8 per cell) unless `particle_spacing`
 
 Stability is checked at build. The explicit solver needs, for the substep Δt = dt / substeps,
     Δt ≤ cfl · Δx / (c_max + v_max)        c_max = max over materials of sqrt((λ + 2μ)/ρ)
-    Δt ≤ ρ Δx² / (6 η)                     for each viscous material (explicit diffusion)
+    Δt ≤ ρ Δx² / (6 (η + ζ))               for each material with a shear or bulk viscosity (explicit diffusion)
 with cfl = 0.5 and v_max the fastest expected speed (`max_speed`, default: the initial speeds plus the
 free-fall speed sqrt(2 g H) over the domain height H, or the tools' max_speed if faster). A scene that breaks either is refused with the
 numbers and the substep count that would satisfy it.
@@ -464,8 +464,9 @@ class Scene:
                   "cfl_dt": CFL_NUMBER * self.dx / (c + v_max) if c + v_max > 0 else math.inf,
                   "viscous_dt": math.inf, "viscous_material": None}
         for m in mats.values():
-            if m.viscosity > 0:
-                dt_v = m.density * self.dx ** 2 / (6.0 * m.viscosity)
+            eta = m.viscosity + m.bulk_viscosity
+            if eta > 0:
+                dt_v = m.density * self.dx ** 2 / (6.0 * eta)
                 if dt_v < limits["viscous_dt"]:
                     limits["viscous_dt"], limits["viscous_material"] = dt_v, m.name
         limits["max_dt"] = min(limits["cfl_dt"], limits["viscous_dt"])
@@ -505,7 +506,7 @@ class Scene:
                        f"wave speed c = {lim['wave_speed']:.3g} m/s of material {lim['stiffest']!r} and expected "
                        f"max speed v_max = {lim['v_max']:.3g} m/s")
             else:
-                why = (f"viscous limit ρΔx²/(6η) = {lim['viscous_dt']:.3g} s of material "
+                why = (f"viscous limit ρΔx²/(6(η + ζ)) = {lim['viscous_dt']:.3g} s of material "
                        f"{lim['viscous_material']!r} with Δx = {self.dx:.4g} m")
             raise UnstableTimeStepError(
                 f"unstable time step: substep dt/substeps = {self.dt:.3g}/{self.substeps} = {sub:.3g} s exceeds the "

@@ -16,8 +16,14 @@ frame, z up, g = 9.81 m/s².
   it floats with the fraction ρ_b/ρ_w of its side below the surface. Reported over time: its lowest face below
   the far-field surface over b (the submerged fraction), and the share of its particles below that surface.
 
+- `sound_ring`: a water column of depth H released at rest without its hydrostatic pressure (J = 1) rings
+  with a quarter wave, period 4H/c (c = √(λ/ρ)); a bulk viscosity ζ (materials.DampedLiquid) damps it at
+  ζk²/(2ρ), k = π/(2H). Reported: the mid-depth pressure over time, its period, first swing, decay rate and mean
+  against ρg(H − z).
+
 The quasi-2-D scenes (dam break, water column, Rayleigh–Taylor) are slabs two cells thick between frictionless
-walls, which behave as the 2-D experiments they are compared with; the floating cube is fully 3-D.
+walls, which behave as the 2-D experiments they are compared with (the sound ring too); the floating cube is
+fully 3-D.
 """
 from __future__ import annotations
 
@@ -41,15 +47,17 @@ def _substeps(scene, substeps):
     scene.substeps = int(substeps) if substeps else scene.stable_substeps()
 
 
-def dam_break(res: int = 64, a: float = 0.1, length: float = 0.5, substeps: int | None = 10) -> dict:
-    """The collapsing column in a tank `length` long, `res` cells along it (substeps None: the stable count)."""
+def dam_break(res: int = 64, a: float = 0.1, length: float = 0.5, substeps: int | None = 10, liquid=None) -> dict:
+    """The collapsing column of `liquid` (default the catalogue's water) in a tank `length` long, `res` cells
+    along it (substeps None: the stable count)."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
 
+    liquid = liquid or M.WATER
     dx = length / res
     thick = 2 * dx
     scene = fl.Scene(lower=(0, 0, 0), upper=(length, thick, 0.25), grid_res=res, dt=2e-3, substeps=1)
-    scene.add_particles(fl.Box((0.0, 0.0, 0.0), (a, thick, 2 * a)), M.WATER, name="water")
+    scene.add_particles(fl.Box((0.0, 0.0, 0.0), (a, thick, 2 * a)), liquid, name="water")
     _substeps(scene, substeps)
     sim = scene.build()
     times, fronts = [], []
@@ -67,16 +75,18 @@ def dam_break(res: int = 64, a: float = 0.1, length: float = 0.5, substeps: int 
 
 
 def water_column(res: int = 16, width: float = 0.16, height: float = 0.12, steps: int = 1000, average: int = 100,
-                 substeps: int | None = 10) -> dict:
-    """Water at rest, `steps` steps of 2 ms; pressure averaged over the last `average` steps (the liquid rings
-    with sound waves that APIC barely damps). Particles within 1.5 cells of the floor are left out of the fit:
-    their B-spline support reaches into the wall nodes."""
+                 substeps: int | None = 10, liquid=None) -> dict:
+    """Water (or `liquid`) at rest, `steps` steps of 2 ms; pressure averaged over the last `average` steps (the
+    liquid rings with sound waves that APIC barely damps). Particles within 1.5 cells of the floor are left out
+    of the fit: their B-spline support reaches into the wall nodes. Also reported: the spread (m, std) of the
+    top layer's heights at the end, a measure of how flat the free surface stays."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
 
+    liquid = liquid or M.WATER
     dx = width / res
     scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, height + 0.04), grid_res=res, dt=2e-3, substeps=1)
-    scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, height)), M.WATER, name="water")
+    scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, height)), liquid, name="water")
     _substeps(scene, substeps)
     sim = scene.build()
     v0 = sim.volumes("water").sum()
@@ -98,8 +108,11 @@ def water_column(res: int = 16, width: float = 0.16, height: float = 0.12, steps
     p_bin = np.array([p[keep][idx == i].mean() for i in range(8)])
     slope, intercept = np.polyfit(d_bin, p_bin, 1)
     residual = p_bin - (slope * d_bin + intercept)
-    rho_g = M.WATER.density * G
+    rho_g = liquid.density * G
+    z_end = heights[-1]
+    top = z_end > z_end.max() - 0.25 * dx  # the top layer (lattice step dx/2)
     return dict(dx=dx, substeps=scene.substeps * steps, worst_volume_error=worst, surface=surface,
+                surface_spread=float(z_end[top].std()),
                 slope=float(slope), slope_ratio=float(slope / rho_g), intercept=float(intercept),
                 r2=float(1 - (residual ** 2).sum() / ((p_bin - p_bin.mean()) ** 2).sum()), rho_g=rho_g)
 
@@ -193,3 +206,44 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
             progress(sim.time, fractions[-1])
     return dict(dx=dx, particles=sim.n_particles, substeps=scene.substeps, times=np.array(times),
                 fractions=np.array(fractions), shares=np.array(shares), expected=body.density / liquid.density)
+
+
+def sound_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4, liquid=None) -> dict:
+    """The column of `liquid` (default the catalogue's water), `depth` deep in a 12 cm slab tank, `res` cells
+    across, released at rest: the mean pressure of a one-cell layer of particles at mid-depth after every 1 ms
+    step, and ring_figures of it."""
+    import fluidlab_core as fl
+    from fluidlab_core import materials as M
+
+    liquid = liquid or M.WATER
+    width = 0.12
+    dx = width / res
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, width), grid_res=res, dt=1e-3, substeps=1)
+    scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, depth)), liquid, name="water")
+    _substeps(scene, None)
+    sim = scene.build()
+    x0 = sim.positions("water")
+    middle = np.abs(x0[:, 2] - 0.5 * depth) < 0.5 * dx  # a layer at mid-depth
+    times, pressures = [], []
+    while sim.time < seconds - 1e-12:
+        sim.step()
+        times.append(sim.time)
+        pressures.append(float(sim.pressures("water")[middle].mean()))
+    times, pressures = np.array(times), np.array(pressures)
+    hydro = liquid.density * G * (depth - x0[middle, 2].mean())
+    period, swing, rate, mean = ring_figures(times, pressures, hydro)
+    return dict(dx=dx, substeps=scene.substeps, times=times, pressures=pressures, hydro=hydro, period=period,
+                first_swing=swing, decay_rate=rate, mean_over_hydro=mean,
+                period_theory=4 * depth / math.sqrt(liquid.bulk_modulus / liquid.density))
+
+
+def ring_figures(times, pressures, hydro):
+    """(period s, amplitude of the first swing Pa, its decay rate 1/s, mean over the last half / hydrostatic)
+    from the pressure's positive peaks above the hydrostatic value."""
+    dev = pressures - hydro
+    peaks = [i for i in range(1, len(dev) - 1) if dev[i] > dev[i - 1] and dev[i] >= dev[i + 1] and dev[i] > 0]
+    period = float(np.median(np.diff(times[peaks]))) if len(peaks) > 2 else math.nan
+    amp = np.abs(dev[peaks])
+    rate = float(-np.polyfit(times[peaks], np.log(amp), 1)[0]) if len(peaks) > 2 else math.nan
+    half = len(times) // 2
+    return period, float(amp[0]) if len(amp) else math.nan, rate, float(pressures[half:].mean() / hydro)

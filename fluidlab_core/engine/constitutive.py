@@ -14,11 +14,14 @@ Notation: F deformation gradient (after the substep update F ← (I + Δt C) F),
 - liquid (weakly compressible), (λ):          J ← det F, F ← J^(1/3) I, τ = λ J (J − 1) I, i.e. pressure
                                               p = −λ (J − 1)                          [Tampubolon 2017, FluidLab]
 - viscous_liquid, (λ, η):                     liquid + τ_v = η J (C + Cᵀ − ⅔ tr(C) I) = 2 η J dev(sym ∇v)
+- damped_liquid, (λ, ζ):                      liquid + τ_b = ζ J tr(C) I = ζ J (∇·v) I, a bulk viscosity that
+                                              damps the liquid's sound waves (a standing wave of wavenumber k
+                                              decays at ζ k²/(2ρ)) and leaves divergence-free flow alone
 
 Parameters are named, in SI units (μ, λ, σ_y in Pa; y₁, y₂ dimensionless; η in Pa·s). A model declares its
 parameter names when it is registered, and the solvers keep one Taichi struct field per model present in a
 scene (`Model.params`), so a model may have any number of parameters: the kernels read `prm.mu`, never a
-position. A material (materials.py) names its model and gives the values (`Material.kernel_params()`).
+position. ζ (bulk viscosity) is in Pa·s. A material (materials.py) names its model and gives the values (`Material.kernel_params()`).
 
 Every model takes the SVD of F as arguments (U, sig, V; zero matrices for models registered with
 needs_svd=False), so that the differentiable solver can compute it in a kernel of its own whose gradient is
@@ -152,6 +155,17 @@ def viscous_liquid(F, C, prm, U, sig, V):
     Fp, tau = _liquid(F, prm.lam)
     J = F.determinant()
     tau += prm.eta * J * (C + C.transpose() - (2.0 / 3.0) * C.trace() * ti.Matrix.identity(float, 3))
+    return Fp, tau
+
+
+@register("damped_liquid", params=("lam", "zeta"), needs_svd=False, fluid=True)
+@ti.func
+def damped_liquid(F, C, prm, U, sig, V):
+    """Liquid plus a bulk viscous stress on the rate of volume change: damps sound waves (the ring of a
+    weakly compressible liquid), not shear."""
+    Fp, tau = _liquid(F, prm.lam)
+    J = F.determinant()
+    tau += prm.zeta * J * C.trace() * ti.Matrix.identity(float, 3)
     return Fp, tau
 
 
