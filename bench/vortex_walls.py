@@ -24,6 +24,12 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 BANDS = [(0, 1), (1, 2), (2, 4), (4, 8), (8, 1e9)]
 
 
+def on_walls(sim) -> bool:
+    """Whether the grid has a row of nodes on the lower walls (origin a whole number of cells below them)."""
+    offset = (np.asarray(sim.model.lower) - np.asarray(sim.model.origin)) / sim.model.dx
+    return bool(np.allclose(offset, np.round(offset), atol=1e-3))
+
+
 def run(res: int, eta: float, ms: float, log) -> None:
     from fluidlab_core import materials as M
     from fluidlab_core.apps.vortex import mode_shape, vortex_simulator
@@ -35,7 +41,8 @@ def run(res: int, eta: float, ms: float, log) -> None:
     sim, k = vortex_simulator(liquid, res, size, amplitude)
     nu = eta / 1000.0
     log(f"\nres {res} cells per L, eta {eta:g} Pa·s (2νk² = {2 * nu * k * k:.2f} /s), {sim.model.substeps} substeps "
-        f"per 1 ms, {sim.n_particles} particles, {time.strftime('%Y-%m-%d')}")
+        f"per 1 ms, {sim.n_particles} particles, {time.strftime('%Y-%m-%d')}, "
+        f"{'nodes on the walls' if on_walls(sim) else 'nodes half a cell inside the walls'}")
     log(" t ms  a/exp(-2νk²t)  residual/a   local a / a in bands by distance to the wall (cells): "
         + " ".join(f"{lo:g}-{hi:g}" if hi < 1e8 else f"{lo:g}+" for lo, hi in BANDS))
     while sim.time <= ms * 1e-3 + 1e-9:
