@@ -101,6 +101,18 @@ def test_viscous_limit_is_refused():
         scene.build()
 
 
+def test_bulk_viscosity_counts_in_the_viscous_limit_and_must_be_positive():
+    """ρΔx²/(6(η + ζ)): ζ = 2000 Pa·s at Δx = 6.25 mm allows 3.3e-6 s, far below the 5e-5 s substep."""
+    damped = M.DampedLiquid("very_damped", density=1000.0, bulk_viscosity_pas=2000.0)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=16, dt=2e-3, substeps=40)
+    scene.add_particles(fl.Box((0.02, 0.02, 0.0), (0.08, 0.08, 0.05)), damped)
+    assert scene.stability_limits()["viscous_dt"] == pytest.approx(1000.0 * 0.00625 ** 2 / (6 * 2000.0))
+    with pytest.raises(fl.UnstableTimeStepError, match="viscous limit.*very_damped"):
+        scene.build()
+    with pytest.raises(ValueError, match="bulk_viscosity_pas"):
+        M.DampedLiquid("bad", density=1000.0, bulk_viscosity_pas=-1.0)
+
+
 def test_bad_scene_inputs_name_the_problem():
     with pytest.raises(ValueError, match="lower < upper"):
         fl.Scene(lower=(0, 0, 0), upper=(0.1, -0.1, 0.1))
