@@ -51,6 +51,7 @@ def main():
 
     import fluidlab_core as fl
     from fluidlab_core import materials as M
+    from fluidlab_core.apps import validation
     from fluidlab_core.engine import constitutive
     from fluidlab_core.shapes import Box
 
@@ -103,12 +104,9 @@ def main():
     t0, rows, series = time.time(), [], []
     while sim.time < args.seconds - 1e-9:
         sim.step(n=int(round(args.every / scene.dt)))
-        xw = np.concatenate([sim.positions(h) for h in waters])
-        far = (np.abs(xw[:, 0] - c) > b) | (np.abs(xw[:, 1] - c) > b)
-        surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
         xc = sim.positions("cube")
-        depth = (surface - (xc[:, 2].min() - 0.5 * s)) / b  # the cube's lowest face below the surface, over b
-        share = (xc[:, 2] < surface).mean()  # the cube's particles below the surface
+        depth, share, surface = validation.submerged(np.concatenate([sim.positions(h) for h in waters]), xc,
+                                                     (c, c), b, dx, s)
         series.append((sim.time, depth, share))
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
         print(rows[-1], f"({time.time() - t0:.0f} s)", flush=True)  # progress

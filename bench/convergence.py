@@ -99,7 +99,7 @@ def study_vortex(quick):
     from fluidlab_core import materials as M
     from fluidlab_core.apps import vortex
 
-    inviscid = M.NewtonianLiquid("water_inviscid", density=1000.0, bulk_modulus=M.WATER.bulk_modulus)
+    inviscid = M.WATER  # the catalogue's water has no viscosity
     viscous = M.ViscousLiquid("viscous_5", density=1000.0, bulk_modulus=M.WATER.bulk_modulus, viscosity_pas=5.0)
     rows = []
     for res in ((16, 24) if quick else (16, 24, 32)):
@@ -138,70 +138,73 @@ def study_float(quick):
 STUDIES = {"dam": study_dam, "hydro": study_hydro, "rt": study_rt, "vortex": study_vortex, "float": study_float}
 
 
-def with_orders(rows, key="error", extra=lambda row: True):
-    rows = [r for r in rows if extra(r)]
-    out = [math.nan]
-    for a, b in zip(rows, rows[1:]):
-        out.append(order(a[key], b[key], a["dx_mm"], b["dx_mm"]))
-    return rows, out
+def orders(rows, key="error"):
+    """The observed order between each row and the one above (nan for the first)."""
+    return [math.nan] + [order(a[key], b[key], a["dx_mm"], b["dx_mm"]) for a, b in zip(rows, rows[1:])]
+
+
+def fmt(x, spec):
+    return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+
+def table(columns, rows):
+    """Lines of a right-aligned table: columns are (header, width, key of the row, format spec)."""
+    lines = [" ".join(f"{head:>{width}}" for head, width, _, _ in columns)]
+    for row in rows:
+        lines.append(" ".join(f"{fmt(row[key], spec):>{width}}" for _, width, key, spec in columns))
+    return lines
 
 
 def render(doc: dict) -> str:
-    def fmt(x, spec):
-        return "" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
-
     lines = ["Convergence under refinement (bench/convergence.py), float32 CPU, stable substeps at each resolution.",
              "Observed order p = ln(e1/e2)/ln(dx1/dx2) of the error e against the reference, between a row and the one above.",
              ""]
     if "dam" in doc:
         d = doc["dam"]
         lines += ["Dam break (Martin & Moyce 1952, a = 10 cm): surge front Z at T = 2.5; ratio to the measurement over "
-                  "0.8 <= T <= 3.4",
-                  f"{'cells':>6} {'dx mm':>6} {'subst':>5} {'Z(2.5)':>7} {'ratio min':>9} {'ratio max':>9} {'dZ/dT':>6} {'s':>6}"]
-        for r in d["rows"]:
-            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['Z_at_2_5']:>7.3f} "
-                         f"{r['ratio_min']:>9.3f} {r['ratio_max']:>9.3f} {r['speed']:>6.3f} {r['seconds']:>6.0f}")
+                  "0.8 <= T <= 3.4"]
+        lines += table([("cells", 6, "res", ""), ("dx mm", 6, "dx_mm", ".2f"), ("subst", 5, "substeps", ""),
+                        ("Z(2.5)", 7, "Z_at_2_5", ".3f"), ("ratio min", 9, "ratio_min", ".3f"),
+                        ("ratio max", 9, "ratio_max", ".3f"), ("dZ/dT", 6, "speed", ".3f"), ("s", 6, "seconds", ".0f")],
+                       d["rows"])
         lines += [f"Richardson order of Z(2.5) from the three: {fmt(d['richardson_order'], '.2f') or 'n/a'}", ""]
     if "hydro" in doc:
-        rows, ps = with_orders(doc["hydro"]["rows"])
-        lines += ["Hydrostatics (12 cm of water at rest, 1 s): slope of p(depth) over rho g (reference 1)",
-                  f"{'cells':>6} {'dx mm':>6} {'slope/rhog':>10} {'r2':>7} {'intercept Pa':>12} {'volume err':>10} {'order':>6}"]
-        for r, p in zip(rows, ps):
-            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['slope_ratio']:>10.4f} {r['r2']:>7.4f} "
-                         f"{r['intercept_Pa']:>12.1f} {r['worst_volume_error']:>10.2e} {fmt(p, '6.2f'):>6}")
+        rows = doc["hydro"]["rows"]
+        rows = [dict(r, order=p) for r, p in zip(rows, orders(rows))]
+        lines += ["Hydrostatics (12 cm of water at rest, 1 s): slope of p(depth) over rho g (reference 1)"]
+        lines += table([("cells", 6, "res", ""), ("dx mm", 6, "dx_mm", ".2f"), ("slope/rhog", 10, "slope_ratio", ".4f"),
+                        ("r2", 7, "r2", ".4f"), ("intercept Pa", 12, "intercept_Pa", ".1f"),
+                        ("volume err", 10, "worst_volume_error", ".2e"), ("order", 6, "order", ".2f")], rows)
         lines.append("")
     if "rt" in doc:
-        rows, ps = with_orders(doc["rt"]["rows"])
+        rows = doc["rt"]["rows"]
+        rows = [dict(r, order=p) for r, p in zip(rows, orders(rows))]
         lines += [f"Rayleigh-Taylor (A = 0.5, W = 10 cm): sigma over sqrt(Akg) = {doc['rt']['sigma_theory']:.1f} /s "
-                  "(reference 1)",
-                  f"{'cells/W':>7} {'dx mm':>6} {'subst':>5} {'sigma 1/s':>9} {'ratio':>6} {'order':>6}"]
-        for r, p in zip(rows, ps):
-            lines.append(f"{r['per_wavelength']:>7} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['sigma']:>9.2f} "
-                         f"{r['ratio']:>6.3f} {fmt(p, '6.2f'):>6}")
+                  "(reference 1)"]
+        lines += table([("cells/W", 7, "per_wavelength", ""), ("dx mm", 6, "dx_mm", ".2f"), ("subst", 5, "substeps", ""),
+                        ("sigma 1/s", 9, "sigma", ".2f"), ("ratio", 6, "ratio", ".3f"), ("order", 6, "order", ".2f")], rows)
         lines.append("")
     if "vortex" in doc:
         rows = doc["vortex"]["rows"]
-        _, p_inv = with_orders(rows, key="inviscid_rate")
-        _, p_exc = with_orders(rows, key="excess_error")
+        rows = [dict(r, order_inviscid=a, order_excess=b)
+                for r, a, b in zip(rows, orders(rows, "inviscid_rate"), orders(rows, "excess_error"))]
         lines += ["Cellular (Taylor-Green) vortex, L = 10 cm: inviscid decay rate over 50 ms (reference 0) and the viscous "
-                  "excess over 100 ms, eta = 5 Pa s, over 2 nu k^2 (reference 1)",
-                  f"{'cells/L':>7} {'dx mm':>6} {'subst':>5} {'inviscid 1/s':>12} {'order':>6} {'excess':>7} {'order':>6}"]
-        for r, a, b in zip(rows, p_inv, p_exc):
-            lines.append(f"{r['res']:>7} {r['dx_mm']:>6.2f} {r['substeps']:>5} {r['inviscid_rate']:>12.2f} "
-                         f"{fmt(a, '6.2f'):>6} {r['viscous_excess']:>7.3f} {fmt(b, '6.2f'):>6}")
+                  "excess over 100 ms, eta = 5 Pa s, over 2 nu k^2 (reference 1)"]
+        lines += table([("cells/L", 7, "res", ""), ("dx mm", 6, "dx_mm", ".2f"), ("subst", 5, "substeps", ""),
+                        ("inviscid 1/s", 12, "inviscid_rate", ".2f"), ("order", 6, "order_inviscid", ".2f"),
+                        ("excess", 7, "viscous_excess", ".3f"), ("order", 6, "order_excess", ".2f")], rows)
         lines.append("")
     if "float" in doc:
         rows = doc["float"]["rows"]
-        half, ps = with_orders(rows, extra=lambda r: r["density"] == 500.0)
-        order_of = {id(r): p for r, p in zip(half, ps)}
+        half = [r for r in rows if r["density"] == 500.0]  # the resolution series; other densities stand alone
+        order_of = {id(r): p for r, p in zip(half, orders(half))}
+        rows = [dict(r, order=order_of.get(id(r), math.nan)) for r in rows]
         lines += ["Floating cube (3-D, 4 cm rigid cube dropped onto 6 cm of water, 12 cm tank): submerged fraction over "
-                  "1.0-1.5 s (reference rho/rho_w)",
-                  f"{'cells':>6} {'dx mm':>6} {'kg/m3':>6} {'subst':>5} {'fraction':>8} {'spread':>6} {'share':>6} "
-                  f"{'expect':>6} {'order':>6} {'s':>6}"]
-        for r in rows:
-            lines.append(f"{r['res']:>6} {r['dx_mm']:>6.2f} {r['density']:>6.0f} {r['substeps']:>5} {r['fraction']:>8.3f} "
-                         f"{r['spread']:>6.3f} {r['share']:>6.3f} {r['expected']:>6.2f} "
-                         f"{fmt(order_of.get(id(r), math.nan), '6.2f'):>6} {r['seconds']:>6.0f}")
+                  "1.0-1.5 s (reference rho/rho_w)"]
+        lines += table([("cells", 6, "res", ""), ("dx mm", 6, "dx_mm", ".2f"), ("kg/m3", 6, "density", ".0f"),
+                        ("subst", 5, "substeps", ""), ("fraction", 8, "fraction", ".3f"), ("spread", 6, "spread", ".3f"),
+                        ("share", 6, "share", ".3f"), ("expect", 6, "expected", ".2f"), ("order", 6, "order", ".2f"),
+                        ("s", 6, "seconds", ".0f")], rows)
         lines.append("")
     return "\n".join(lines)
 

@@ -64,9 +64,7 @@ def main():
         if base_rate is None:
             base_rate = rate
         theory = zeta * k * k / (2 * M.WATER.density) + (base_rate if zeta > 0 else 0.0)
-        inviscid = M.NewtonianLiquid("water_inviscid", density=1000.0, bulk_modulus=M.WATER.bulk_modulus) \
-            if zeta <= 0 else liquid
-        v_rate, _, _ = vortex.decay_rate(inviscid, res=24, duration=0.05, every=5)
+        v_rate, _, _ = vortex.decay_rate(liquid, res=24, duration=0.05, every=5)
         dam = validation.dam_break(res=32, substeps=None, liquid=liquid)
         z25 = float(np.interp(2.5, dam["times"], dam["fronts"]))
         rest = validation.water_column(res=16, steps=500, average=100, substeps=None, liquid=liquid)

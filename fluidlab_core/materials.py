@@ -207,8 +207,8 @@ class DampedLiquid(NewtonianLiquid):
     """Newtonian liquid plus a bulk viscosity ζ (Pa·s): τ_b = ζ J (∇·v) I. It damps the sound waves that the
     weakly compressible liquid otherwise keeps (a standing wave of wavenumber k decays at ζ k²/(2ρ); the ring
     of a column of depth H, k = π/2H) and does nothing to a divergence-free flow. A resolution-aware choice is
-    ζ = α ρ c Δx with α of order 0.1-1 (c the sound speed): its time-step limit ρΔx²/(6ζ) = Δx/(6αc) then
-    stays of the order of the sound-speed CFL limit at every resolution. bench/sound_ring.py measures it."""
+    ζ = α ρ c Δx (c the sound speed): its time-step limit ρΔx²/(6ζ) = Δx/(6αc) then stays above the
+    sound-speed limit 0.5 Δx/c at every resolution for α ≤ 1/3. bench/sound_ring.py measures it."""
 
     bulk_viscosity_pas: float = 10.0
     model: ClassVar[str] = "damped_liquid"

@@ -464,9 +464,9 @@ class Scene:
                   "cfl_dt": CFL_NUMBER * self.dx / (c + v_max) if c + v_max > 0 else math.inf,
                   "viscous_dt": math.inf, "viscous_material": None}
         for m in mats.values():
-            eta = m.viscosity + m.bulk_viscosity
-            if eta > 0:
-                dt_v = m.density * self.dx ** 2 / (6.0 * eta)
+            eta_total = m.viscosity + m.bulk_viscosity  # shear and bulk: both diffuse momentum explicitly
+            if eta_total > 0:
+                dt_v = m.density * self.dx ** 2 / (6.0 * eta_total)
                 if dt_v < limits["viscous_dt"]:
                     limits["viscous_dt"], limits["viscous_material"] = dt_v, m.name
         limits["max_dt"] = min(limits["cfl_dt"], limits["viscous_dt"])

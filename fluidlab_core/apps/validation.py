@@ -169,6 +169,17 @@ def rayleigh_taylor(top, bottom, res: int = 64, width: float = 0.1, height: floa
                 sigma_theory=math.sqrt(abs(atwood) * 2 * math.pi / width * G))
 
 
+def submerged(x_liquid, x_body, axis, side: float, dx: float, spacing: float):
+    """(fraction, share, surface m) of a floating cube of `side` whose vertical axis passes through axis = (x, y):
+    its lowest face below the far-field surface over its side, and the share of its particles below that
+    surface. Far field: liquid more than a side from the axis in x or y; its surface is the 99th percentile of
+    those particles' heights plus a quarter cell (the top particles sit half a lattice step below it)."""
+    far = (np.abs(x_liquid[:, 0] - axis[0]) > side) | (np.abs(x_liquid[:, 1] - axis[1]) > side)
+    surface = float(np.percentile(x_liquid[far, 2], 99) + 0.25 * dx)
+    lowest_face = x_body[:, 2].min() - 0.5 * spacing
+    return float((surface - lowest_face) / side), float((x_body[:, 2] < surface).mean()), surface
+
+
 def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, drop: float = 0.01,
                   width: float = 0.12, level: float = 0.06, side: float = 0.04, every: float = 0.05,
                   body=None, liquid=None, progress=None) -> dict:
@@ -195,13 +206,10 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
     n = max(1, int(round(every / scene.dt)))
     while sim.time < seconds - 1e-9:
         sim.step(n=n)
-        xw = sim.positions("water")
-        far = (np.abs(xw[:, 0] - c) > side) | (np.abs(xw[:, 1] - c) > side)
-        surface = np.percentile(xw[far, 2], 99) + 0.25 * dx  # top particles sit a quarter cell below it
-        xc = sim.positions("cube")
+        fraction, share, _ = submerged(sim.positions("water"), sim.positions("cube"), (c, c), side, dx, s)
         times.append(sim.time)
-        fractions.append((surface - (xc[:, 2].min() - 0.5 * s)) / side)
-        shares.append(float((xc[:, 2] < surface).mean()))
+        fractions.append(fraction)
+        shares.append(share)
         if progress:
             progress(sim.time, fractions[-1])
     return dict(dx=dx, particles=sim.n_particles, substeps=scene.substeps, times=np.array(times),
