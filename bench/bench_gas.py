@@ -48,6 +48,9 @@ def ours(n: int, steps: int, grad_steps: int, arch: str, threads: int) -> dict:
     from fluidlab_core import losses
 
     fl.init(arch=arch, precision="f32", cpu_threads=threads)
+    import taichi as ti
+
+    sync = ti.sync  # CUDA launches are asynchronous: a timer reads the clock after the device has finished
     out = {}
     for grad in (False, True):
         scene = fl.Scene(lower=(0, 0, 0), upper=(L, L, L), grid_res=n, dt=DT)
@@ -57,25 +60,31 @@ def ours(n: int, steps: int, grad_steps: int, arch: str, threads: int) -> dict:
         sim = scene.build(requires_grad=grad)
         if not grad:
             sim.step()  # compiles
+            sync()
             times = []
             for _ in range(steps):
                 t0 = time.perf_counter()
                 sim.step()
+                sync()
                 times.append(time.perf_counter() - t0)
             rep = sim.solver.poisson.last
             # the projection against one V-cycle: time both on the current state
             s = sim.solver
             s.prepare_boundaries()
             s.forward_stages(DT)
+            sync()
             t0 = time.perf_counter()
             s.project(DT, 0)
+            sync()
             t_solve = time.perf_counter() - t0
             p = s.poisson
             for _ in range(2):
                 p._vcycle()
+            sync()
             t0 = time.perf_counter()
             for _ in range(5):
                 p._vcycle()
+            sync()
             t_v = (time.perf_counter() - t0) / 5
             out.update(forward_s=float(np.median(times)), iterations=rep["iterations"], residual=rep["residual"],
                        solve_s=t_solve, vcycle_s=t_v, solve_per_vcycle_digit=t_solve / (t_v * 6))
@@ -85,19 +94,32 @@ def ours(n: int, steps: int, grad_steps: int, arch: str, threads: int) -> dict:
             start = sim.get_state()
             sim.rollout(1, loss, grad=True)  # compiles forward and backward
             sim.set_state(start)
+            sync()
             t0 = time.perf_counter()
             sim.rollout(grad_steps, loss, grad=True)
+            sync()
             out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
     return out
 
 
-def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
+def phiflow(n: int, steps: int, grad_steps: int, threads: int, gpu: bool = False) -> dict:
     """PhiFlow's plume on its torch backend in float64 (float32 CG stalled at a max residual of 2e-5 after 2000
-    iterations at 64³, short of 1e-6). `steps` 0 or `grad_steps` 0 skip that part."""
+    iterations at 64³, short of 1e-6). `steps` 0 or `grad_steps` 0 skip that part. gpu: torch on the GPU (what
+    PhiFlow would use on a GPU machine; with --arch cuda), synchronised before each clock reading."""
     import torch
 
     torch.set_num_threads(threads)
     from phi.torch import flow as pf
+
+    if gpu:
+        from phiml.backend.torch import TORCH
+
+        if not TORCH.set_default_device("GPU"):
+            raise RuntimeError("PhiFlow: torch finds no GPU")
+
+    def sync():
+        if gpu:
+            torch.cuda.synchronize()
     from phiml.backend._numpy_backend import NumPyBackend
 
     # phiml 1.16.1 casts the flat indices of its sparse Poisson matrix back to int32: from 64³ cells (2^36
@@ -129,10 +151,12 @@ def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
     if steps:
         v, t, p = fresh()
         v, t, p = step(v, t, p)  # warm-up
+        sync()
         times = []
         for _ in range(steps):
             t0 = time.perf_counter()
             v, t, p = step(v, t, p)
+            sync()
             times.append(time.perf_counter() - t0)
         out["forward_s"] = float(np.median(times))
     if grad_steps:
@@ -145,8 +169,10 @@ def phiflow(n: int, steps: int, grad_steps: int, threads: int) -> dict:
             return pf.math.sum(tt.values * w)
 
         grad_fn = pf.math.gradient(loss_of, "v0", get_output=False)
+        sync()
         t0 = time.perf_counter()
         grad_fn(fresh()[0])
+        sync()
         out["forward_backward_s"] = (time.perf_counter() - t0) / grad_steps
     return out
 
@@ -155,7 +181,7 @@ def table(rows: list, arch: str, threads: int) -> str:
     """The results table; a ratio is '-' where PhiFlow was not timed."""
     lines = [f"Smoke plume, {L} m cube, dt {DT} s, pressure to a relative residual of {TOL:g}; {arch}, "
              f"{threads} thread(s); seconds per step (median), steps/s in brackets; ratio = PhiFlow / ours "
-             f"(above 1: ours faster).", ""]
+             f"(above 1: ours faster); PhiFlow on {'the GPU (torch CUDA)' if arch == 'cuda' else 'the CPU'}.", ""]
     lines.append(f"{'grid':>6} {'ours fwd':>16} {'PhiFlow fwd':>16} {'ratio':>6} {'ours fwd+bwd':>16} "
                  f"{'PhiFlow fwd+bwd':>16} {'ratio':>6} {'MGPCG iters':>11} {'solve / (V-cycle x 6)':>22}")
     for r in rows:
@@ -201,15 +227,23 @@ def main(argv=None):
         gsteps = args.grad_steps[min(i, len(args.grad_steps) - 1)]
         row = {"n": n, "ours": ours(n, steps, gsteps, args.arch, args.threads)}
         print(f"{n}³ ours: {row['ours']}", flush=True)
-        if not args.no_phiflow:
-            row["phiflow"] = phiflow(n, args.phiflow_steps[min(i, len(args.phiflow_steps) - 1)],
-                                     args.phiflow_grad_steps[min(i, len(args.phiflow_grad_steps) - 1)], args.threads)
-            print(f"{n}³ PhiFlow: {row['phiflow']}", flush=True)
         rows.append(row)
-    text = table(rows, args.arch, args.threads)
-    print(text)
+        write(out, rows, args)  # after each solver, so that a run cut short keeps what it measured
+        if not args.no_phiflow:
+            try:
+                row["phiflow"] = phiflow(n, args.phiflow_steps[min(i, len(args.phiflow_steps) - 1)],
+                                         args.phiflow_grad_steps[min(i, len(args.phiflow_grad_steps) - 1)],
+                                         args.threads, gpu=args.arch == "cuda")
+            except Exception as e:  # noqa: BLE001 - a failing comparison must not lose our own figures
+                row["phiflow"] = {"error": f"{type(e).__name__}: {e}"[:300]}
+            print(f"{n}³ PhiFlow: {row['phiflow']}", flush=True)
+            write(out, rows, args)
+    print(table(rows, args.arch, args.threads))
+
+
+def write(out: Path, rows: list, args) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".txt").write_text(text + "\n")
+    out.with_suffix(".txt").write_text(table(rows, args.arch, args.threads) + "\n")
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
 
 

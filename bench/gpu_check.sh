@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# The checks and figures that need a CUDA GPU, as one time-boxed run (a lent GPU machine is counted in minutes).
+#
+#   bash bench/gpu_check.sh OUTDIR [SECONDS]        (default OUTDIR out/gpu, SECONDS 520)
+#
+# In order, each step time-boxed so that the later ones still run and whatever finished is kept:
+#   1. the device: nvidia-smi, Taichi on CUDA;
+#   2. the engine's tests on CUDA (FLUIDLAB_TEST_ARCH=cuda, conftest.py): the `cuda` test (every material, a
+#      static and a tool against the CPU), the API, liquid, viscous, solid and gas physics tests and the gradient tests;
+#   3. bench/bench_mpm.py on CUDA and on all the machine's CPU cores (same script, same machine);
+#   4. bench/bench_gas.py on CUDA at 64³ and 128³, PhiFlow beside it on the same GPU (torch CUDA);
+#   5. bench/bench_sizes.py at paper size on CUDA (ms per simulated step, forward and gradient);
+#   6. with time left, a short DP run at paper size (python -m fluidlab_core.benchmark --size paper --arch cuda).
+# Everything is streamed to OUTDIR/run.log; the result files (bench/results/*_cuda*, the test report, the DP run)
+# are packed into OUTDIR/results.tgz at the end.
+#
+# The package's Python dependencies must be importable. Where the machine cannot install them (no network), a
+# tarball of them unpacked (.whl/site312.tar.xz, ignored by git; docs/gpu.md says how it is made) is put on
+# PYTHONPATH.
+set -u
+OUT=${1:-out/gpu}
+BUDGET=${2:-520}
+PY=${PYTHON:-python3}
+mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
+LOG="$OUT/run.log"
+T0=$(date +%s)
+left() { echo $((BUDGET - ($(date +%s) - T0))); }
+say() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$LOG"; }
+step() {  # step SECONDS NAME COMMAND...: run with a time box no longer than what is left
+    local cap=$1 name=$2
+    shift 2
+    local l
+    l=$(left)
+    [ "$cap" -gt "$l" ] && cap=$l
+    if [ "$cap" -lt 20 ]; then say "SKIP $name (no time left)"; return; fi
+    say "START $name (time box $cap s)"
+    timeout -k 5 "$cap" "$@" >>"$LOG" 2>&1
+    say "END $name rc=$?"
+}
+
+export PYTHONPATH=$PWD
+if [ -f .whl/site312.tar.xz ]; then
+    mkdir -p /tmp/flsite && tar xJf .whl/site312.tar.xz -C /tmp/flsite && export PYTHONPATH=/tmp/flsite:$PWD
+fi
+export TI_OFFLINE_CACHE_FILE_PATH=/tmp/fl_ticache
+mkdir -p bench/results
+
+step 40 device bash -c "nvidia-smi -L; nproc; $PY -c 'import sys, numpy, taichi as ti; ti.init(arch=ti.cuda); \
+print(sys.version.split()[0], numpy.__version__, ti.__version__, ti.lang.impl.current_cfg().arch)'"
+
+step 200 tests env FLUIDLAB_TEST_ARCH=cuda $PY -m pytest -p no:cacheprovider -n 12 --dist load -v -rfEs \
+    --durations=15 --junitxml="$OUT/tests_cuda.xml" tests/test_engine_api.py tests/test_physics_liquids.py \
+    tests/test_physics_viscous.py tests/test_physics_solids.py tests/test_gas.py tests/test_gradients.py
+
+step 60 mpm_cuda $PY bench/bench_mpm.py --arch cuda --steps 20
+step 60 mpm_cpu $PY bench/bench_mpm.py --arch cpu --steps 5
+
+step 120 gas $PY bench/bench_gas.py --arch cuda --sizes 64 128 --steps 8 5 --grad-steps 4 2 \
+    --phiflow-steps 3 2 --phiflow-grad-steps 2 0
+
+step 120 sizes $PY bench/bench_sizes.py --arch cuda --sizes paper --tasks LatteArtStir GatheringEasy AirCirculation
+
+if [ "$(left)" -gt 120 ]; then
+    step $(($(left) - 15)) dp_paper $PY -m fluidlab_core.benchmark --size paper --arch cuda --tasks LatteArtStir \
+        --methods dp --seeds 0 --rollouts 12 --checkpoints 3 --jobs 1 --no-ray --out "$OUT/benchmark_paper"
+fi
+
+say "packing"
+tar czf "$OUT/results.tgz" bench/results/*cuda* -C "$OUT" $(cd "$OUT" && ls -d tests_cuda.xml benchmark_paper 2>/dev/null) \
+    >>"$LOG" 2>&1
+say "done"
