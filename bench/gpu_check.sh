@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # The checks and figures that need a CUDA GPU, as one time-boxed run (a lent GPU machine is counted in minutes).
 #
-#   bash bench/gpu_check.sh OUTDIR [SECONDS]        (default OUTDIR out/gpu, SECONDS 520)
+#   bash bench/gpu_check.sh OUTDIR [SECONDS]        (default OUTDIR out/gpu, SECONDS 560)
 #
 # In order, each step time-boxed so that the later ones still run and whatever finished is kept:
 #   1. the device: nvidia-smi, Taichi on CUDA;
 #   2. the engine's tests on CUDA (FLUIDLAB_TEST_ARCH=cuda, conftest.py): the `cuda` test (every material, a
-#      static and a tool against the CPU), the API, liquid, viscous, solid and gas physics tests and the gradient tests;
-#   3. bench/bench_mpm.py on CUDA and on all the machine's CPU cores (same script, same machine);
+#      static and a tool against the CPU), the API, liquid, viscous, solid and gas physics tests (GPU_CHECK_TESTS
+#      adds more files, e.g. tests/test_gradients.py, for a longer BUDGET);
+#   3. bench/bench_mpm.py on CUDA;
 #   4. bench/bench_gas.py on CUDA at 64³ and 128³, PhiFlow beside it on the same GPU (torch CUDA);
 #   5. bench/bench_sizes.py at paper size on CUDA (ms per simulated step, forward and gradient);
 #   6. with time left, a short DP run at paper size (python -m fluidlab_core.benchmark --size paper --arch cuda).
@@ -19,7 +20,7 @@
 # PYTHONPATH.
 set -u
 OUT=${1:-out/gpu}
-BUDGET=${2:-520}
+BUDGET=${2:-560}
 PY=${PYTHON:-python3}
 mkdir -p "$OUT"
 OUT=$(cd "$OUT" && pwd)
@@ -36,7 +37,12 @@ step() {  # step SECONDS NAME COMMAND...: run with a time box no longer than wha
     if [ "$cap" -lt 20 ]; then say "SKIP $name (no time left)"; return; fi
     say "START $name (time box $cap s)"
     timeout -k 5 "$cap" "$@" >>"$LOG" 2>&1
-    say "END $name rc=$?"
+    local rc=$?
+    # a time box kills the step's own process, not its children (pytest-xdist's workers): without this they go
+    # on compiling and running on the CPU and the GPU through every later step and spoil its timings
+    # (by process name: matching command lines would also match a shell whose command line names python)
+    pkill -9 -x "$(basename "$PY")" 2>/dev/null; sleep 1
+    say "END $name rc=$rc"
 }
 
 export PYTHONPATH=$PWD
@@ -49,17 +55,18 @@ mkdir -p bench/results
 step 40 device bash -c "nvidia-smi -L; nproc; $PY -c 'import sys, numpy, taichi as ti; ti.init(arch=ti.cuda); \
 print(sys.version.split()[0], numpy.__version__, ti.__version__, ti.lang.impl.current_cfg().arch)'"
 
+# Time boxes from the first run (H200, 2026-11-26): compiling the MPM kernels takes about 42 s on CUDA (11 s on
+# the CPU); 34 of these tests passed in 200 s, the CUDA-against-CPU test and the gradient tests did not finish.
 step 200 tests env FLUIDLAB_TEST_ARCH=cuda $PY -m pytest -p no:cacheprovider -n 12 --dist load -v -rfEs \
     --durations=15 --junitxml="$OUT/tests_cuda.xml" tests/test_engine_api.py tests/test_physics_liquids.py \
-    tests/test_physics_viscous.py tests/test_physics_solids.py tests/test_gas.py tests/test_gradients.py
+    tests/test_physics_viscous.py tests/test_physics_solids.py tests/test_gas.py ${GPU_CHECK_TESTS:-}
 
-step 60 mpm_cuda $PY bench/bench_mpm.py --arch cuda --steps 20
-step 60 mpm_cpu $PY bench/bench_mpm.py --arch cpu --steps 5
+step 90 mpm_cuda $PY bench/bench_mpm.py --arch cuda --steps 20 --particles 20000 100000
 
-step 120 gas $PY bench/bench_gas.py --arch cuda --sizes 64 128 --steps 8 5 --grad-steps 4 2 \
+step 150 gas $PY bench/bench_gas.py --arch cuda --sizes 64 128 --steps 8 5 --grad-steps 4 2 \
     --phiflow-steps 3 2 --phiflow-grad-steps 2 0
 
-step 120 sizes $PY bench/bench_sizes.py --arch cuda --sizes paper --tasks LatteArtStir GatheringEasy AirCirculation
+step 150 sizes $PY bench/bench_sizes.py --arch cuda --sizes paper --tasks LatteArtStir GatheringEasy AirCirculation
 
 if [ "$(left)" -gt 120 ]; then
     step $(($(left) - 15)) dp_paper $PY -m fluidlab_core.benchmark --size paper --arch cuda --tasks LatteArtStir \
@@ -67,6 +74,7 @@ if [ "$(left)" -gt 120 ]; then
 fi
 
 say "packing"
-tar czf "$OUT/results.tgz" bench/results/*cuda* -C "$OUT" $(cd "$OUT" && ls -d tests_cuda.xml benchmark_paper 2>/dev/null) \
-    >>"$LOG" 2>&1
+mkdir -p "$OUT/pack" && cp -r bench/results/*cuda* "$OUT/pack/" 2>/dev/null
+for f in tests_cuda.xml benchmark_paper; do [ -e "$OUT/$f" ] && mv "$OUT/$f" "$OUT/pack/"; done
+tar czf "$OUT/results.tgz" -C "$OUT/pack" . >>"$LOG" 2>&1 && rm -rf "$OUT/pack"
 say "done"
