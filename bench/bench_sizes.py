@@ -40,6 +40,7 @@ def main(argv=None) -> int:
              f"{'CMA-ES run':>11} {'DP run':>9} {'first s':>8}"]
     print("\n".join(lines), flush=True)
     out = Path(args.out or f"bench/results/sizes_{args.arch}.txt")
+    out.parent.mkdir(parents=True, exist_ok=True)
     for name in args.tasks or tasks.names():
         for size in args.sizes:
             task = tasks.make(name, size=size)
@@ -62,10 +63,7 @@ def main(argv=None) -> int:
                          f"{1e3 * times['forward']:>10.1f} {1e3 * times['grad']:>8.1f} "
                          f"{run['forward']:>8.0f} min {run['grad']:>5.0f} min {first:>8.0f}")
             print(lines[-1], flush=True)
-            out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text("\n".join(lines) + "\n")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
     print(f"wrote {out}")
     return 0
 

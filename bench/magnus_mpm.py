@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+U = 0.2  # m/s, the throw (validation.magnus's default)
+RADIUS = {2: 0.012, 3: 0.015}  # m, the disc's and the ball's
 
 
 def cases(quick: bool):
@@ -51,6 +53,8 @@ def main(argv=None) -> int:
     from fluidlab_core.apps import validation
 
     fl.init(arch="cpu")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     lines = ["Magnus effect in the particle engine: a rigid body of water's density thrown at U = 0.2 m/s with spin "
              "α U / r about z (bench/magnus_mpm.py). Expected: y > 0 for α > 0 (along ω × U), growing with α.",
              f"{'body':<5} {'cells':>5} {'r/dx':>5} {'fill':>5} {'alpha':>6} {'y 20ms mm':>10} {'y 60ms mm':>10} "
@@ -60,24 +64,22 @@ def main(argv=None) -> int:
         base = None
         for alpha in alphas:
             t0 = time.perf_counter()
-            r = validation.magnus(res=res, alpha=alpha, dims=dims, contact_fill=fill,
-                                  radius=0.012 if dims == 2 else 0.015)
+            radius = RADIUS[dims]
+            r = validation.magnus(res=res, alpha=alpha, dims=dims, contact_fill=fill, radius=radius, speed=U)
             y20, y60 = at(r, 0.02, "displacement")[1], at(r, 0.06, "displacement")[1]
             if alpha == 0.0:
                 base = (y20, y60)
             else:
                 y20, y60 = y20 - base[0], y60 - base[1]
             along = "-" if alpha == 0.0 else ("yes" if np.sign(y60) == np.sign(alpha) else "NO")
-            vx = at(r, 0.01, "velocity")[0] / 0.2
+            vx = at(r, 0.01, "velocity")[0] / U
             w = at(r, 0.01, "spin") / r["omega"] if r["omega"] else float("nan")
-            radius = 0.012 if dims == 2 else 0.015
             lines.append(f"{'disc' if dims == 2 else 'ball':<5} {res:>5} {radius / r['dx']:>5.1f} {fill:>5.2f} "
                          f"{alpha:>6.1f} {1e3 * y20:>10.3f} {1e3 * y60:>10.3f} {along:>9} {vx:>9.2f} {w:>9.2f} "
                          f"{time.perf_counter() - t0:>6.0f}")
             print(lines[-1], flush=True)
-            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.out).write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.out}")
+            out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {out}")
     return 0
 
 
