@@ -15,7 +15,8 @@ Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
 Two velocity fields (scenes with both fluids and solids; constitutive models registered with fluid=True are
 fluids): P2G scatters the fluids' mass and momentum into one field and everything else's into another, and the
 volume of all particles, V⁰_p det F_p, into a third. A node where both fields have mass and whose volume fill
-φ_i = Σ_p w_ip V_p / Δx³ is at least the scene's `contact_fill` (default 0.97) is a contact node: both fields
+φ_i = Σ_p w_ip V_p / Δx³, plus the share of its stencil beyond the walls or inside statics (`solid_share`), is at
+least the scene's `contact_fill` (default 0.97) is a contact node: both fields
 get the velocity of their summed mass and momentum, as on a single-velocity grid. Elsewhere each field has
 its own velocity (the same boundary conditions), and G2P gathers each particle from its own field.
 Why: on a single velocity field a liquid and a body interact wherever their stencils share a node, up to
@@ -65,9 +66,30 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
 
 
 @ti.func
-def in_contact(model: ti.template(), m_s, m_f, vol):
-    """Whether a node with solid mass m_s, fluid mass m_f and particle volume vol (m³) is a contact node."""
-    return m_s > model.mass_floor and m_f > model.mass_floor and vol * model.inv_dx ** 3 >= model.contact_fill
+def solid_share(model: ti.template(), I):
+    """The share of node I's stencil that lies beyond the domain's walls or inside a static (the quadratic
+    B-spline's weight there, statics.bspline_cdf; each static's surface taken as a plane at its distance φ).
+    Walls and statics are not void: a liquid and a body that meet beside one fill such a node only up to this
+    share, and the contact test counts it as filled (without it, a body against a wall, or in a slab between
+    two, shared no velocity with the liquid at the nodes next to the wall and passed through it there)."""
+    xn = ti.Vector(model.origin) + I * model.dx
+    inside = 1.0
+    for d in ti.static(range(3)):
+        beyond = statics.bspline_cdf((model.lower[d] - xn[d]) * model.inv_dx) + \
+            statics.bspline_cdf((xn[d] - model.upper[d]) * model.inv_dx)
+        inside *= ti.max(1.0 - beyond, 0.0)
+    share = 1.0 - inside
+    for k in ti.static(range(len(model.colliders))):
+        share = ti.max(share, model.colliders[k].stencil_fill(xn))
+    return share
+
+
+@ti.func
+def in_contact(model: ti.template(), I, m_s, m_f, vol):
+    """Whether node I, with solid mass m_s, fluid mass m_f and particle volume vol (m³), is a contact node: both
+    fields have mass there and the particles, with the walls' and statics' share of the stencil, fill it."""
+    fill = vol * model.inv_dx ** 3 + solid_share(model, I)
+    return m_s > model.mass_floor and m_f > model.mass_floor and fill >= model.contact_fill
 
 
 @ti.func
@@ -76,7 +98,7 @@ def field_velocity(model: ti.template(), I, fluid, m_s, mv_s, m_f, mv_f, vol, st
     and momentum, or at a contact node from both (node_velocity). Arithmetic selection, exact for 0/1 weights,
     rather than locals written in branches (Taichi's reverse mode)."""
     a = ti.cast(fluid, float)
-    c = ti.cast(in_contact(model, m_s, m_f, vol), float)
+    c = ti.cast(in_contact(model, I, m_s, m_f, vol), float)
     m = (1.0 - c) * ((1.0 - a) * m_s + a * m_f) + c * (m_s + m_f)
     mv = (1.0 - c) * ((1.0 - a) * mv_s + a * mv_f) + c * (mv_s + mv_f)
     return node_velocity(model, I, m, mv, state, s)

@@ -163,6 +163,19 @@ def sdf_func(shape, real, mesh_spacing: float, uploads=None):
     raise TypeError(f"no static collider for shape type {type(shape).__name__}")
 
 
+@ti.func
+def bspline_cdf(t):
+    """∫_{−∞}^{t} w(s) ds of the quadratic B-spline w (support |s| < 3/2, in cells): the share of a node's stencil
+    on one side of a plane t cells from the node (0 far outside, ½ through the node, 1 far inside)."""
+    t = ti.min(ti.max(t, -1.5), 1.5)
+    a = ti.max(t + 1.5, 0.0)
+    b = ti.max(1.5 - t, 0.0)
+    lo = a * a * a / 6.0  # t ≤ −½
+    mid = 1.0 / 6.0 + 0.75 * (t + 0.5) - (t * t * t + 0.125) / 3.0  # −½ < t ≤ ½
+    hi = 1.0 - b * b * b / 6.0  # t > ½
+    return ti.select(t <= -0.5, lo, ti.select(t <= 0.5, mid, hi))
+
+
 def sdf_normal(sdf, h: float):
     """n(x) = ∇φ/|∇φ| of a Taichi SDF function by central differences of step h (m)."""
 
@@ -213,5 +226,12 @@ class Collider:
                     v -= vn * n
             return x, v
 
+        @ti.func
+        def stencil_fill(x):
+            """The share of a node's B-spline stencil inside the collider (grid.solid_share), its surface taken
+            as a plane at distance φ(x): the contact test counts it as filled."""
+            return bspline_cdf(-sdf(x) / dx)
+
         self.grid = grid
         self.particle = particle
+        self.stencil_fill = stencil_fill
