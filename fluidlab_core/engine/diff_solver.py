@@ -272,8 +272,9 @@ class DiffSolver(Solver):
             # gradient dominates this kernel's compile time
             for f, i, j, k in ti.ndrange(2, *self.model.grid_shape):
                 I = ti.Vector([i, j, k])
-                v = grid.field_velocity(self.model, I, f, self.grid_m[I], self.grid_mv[I], self.grid_m_f[I],
-                                        self.grid_mv_f[I], self.grid_vol[I], self.state, s)
+                c = grid.in_contact(self.model, I, self.grid_m[I], self.grid_m_f[I], self.grid_vol[I])
+                v = grid.field_velocity(self.model, I, f, c, self.grid_m[I], self.grid_mv[I], self.grid_m_f[I],
+                                        self.grid_mv_f[I], self.state, s)
                 if f == 0:
                     self.grid_v[I] = v
                 else:

@@ -86,19 +86,21 @@ def solid_share(model: ti.template(), I):
 
 @ti.func
 def in_contact(model: ti.template(), I, m_s, m_f, vol):
-    """Whether node I, with solid mass m_s, fluid mass m_f and particle volume vol (m³), is a contact node: both
-    fields have mass there and the particles, with the walls' and statics' share of the stencil, fill it."""
+    """1.0 if node I, with solid mass m_s, fluid mass m_f and particle volume vol (m³), is a contact node, else
+    0.0: both fields have mass there and the particles, with the walls' and statics' share of the stencil, fill
+    it. Computed once per node and passed to field_velocity for both fields (solid_share evaluates every
+    static's SDF)."""
     fill = vol * model.inv_dx ** 3 + solid_share(model, I)
-    return m_s > model.mass_floor and m_f > model.mass_floor and fill >= model.contact_fill
+    return ti.cast(m_s > model.mass_floor and m_f > model.mass_floor and fill >= model.contact_fill, float)
 
 
 @ti.func
-def field_velocity(model: ti.template(), I, fluid, m_s, mv_s, m_f, mv_f, vol, state: ti.template(), s):
+def field_velocity(model: ti.template(), I, fluid, contact, m_s, mv_s, m_f, mv_f, state: ti.template(), s):
     """Velocity of node I in the solids' (fluid = 0) or the fluids' (fluid = 1) field: from that field's mass
-    and momentum, or at a contact node from both (node_velocity). Arithmetic selection, exact for 0/1 weights,
-    rather than locals written in branches (Taichi's reverse mode)."""
+    and momentum, or at a contact node (contact = 1.0, from in_contact) from both (node_velocity). Arithmetic
+    selection, exact for 0/1 weights, rather than locals written in branches (Taichi's reverse mode)."""
     a = ti.cast(fluid, float)
-    c = ti.cast(in_contact(model, I, m_s, m_f, vol), float)
+    c = contact
     m = (1.0 - c) * ((1.0 - a) * m_s + a * m_f) + c * (m_s + m_f)
     mv = (1.0 - c) * ((1.0 - a) * mv_s + a * mv_f) + c * (mv_s + mv_f)
     return node_velocity(model, I, m, mv, state, s)
