@@ -20,14 +20,14 @@ This one-way push does not act back on b; the grid coupling carries the forces.
 Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
 conserves momentum.
 
-Known limitation, measured in the buoyancy set-up (tests/test_physics_solids.py, 7.5 mm cells): floating
-blocks start at Archimedes' depth but sink relative to the surface by about 2.5 mm/s, and the far-field water
-surface drops by about 1 mm/s while they float; without rigid bodies the same water keeps its level. In a
-single-block check (800 kg/m³, 7.5 mm cells) an elastic block of the same density floats at exactly
-Archimedes' depth with no drift, while the rigid block sinks at 1.6 mm/s, the same whether F is kept as
-elastic strain or reset as here, and with or without the exclusion step: the projection itself is the
-cause. A likely mechanism: snapping the supported bottom particles to the body's mean (downward) velocity
-pushes them into the liquid every substep, so liquid is squeezed out from under the body. Still open.
+Known limitation (issue 19; docs/engine.md, "Floating bodies in 3-D"): a floating body does not settle at one
+depth. It creeps, and stops anywhere in a band (a 500 kg/m³ cube at 24 cells held still at 0.545 and at 0.671 of
+its side below the surface, Archimedes 0.50). The liquid's push at a contact node is shared with the liquid's
+own mass there; the body receives it only as the liquid it presses into compresses the body's bottom layers
+and so builds the pressure gradient (from J above) that holds the body up, a slow and history-dependent route.
+Measured and ruled out: the exclusion step (made two-way, or pushing to s/4 outside: the same creep) and the
+layer-to-layer alternation of J (a linear fit of J over the body: the same). Not yet tried: giving the body the
+liquid's push at its nodes directly.
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
