@@ -8,7 +8,7 @@ floating_cube set-up, float32, CPU). Every `--every` seconds, in the cube's own 
 particles: centre of mass and the rotation of the Kabsch fit to the rest offsets), each water particle's
 signed distance φ to the cube's surface (the box's SDF; negative inside), and:
 - frac: the cube's lowest face below the far-field surface over its side (validation.submerged; Archimedes 0.50);
-- φ bins: how many water particles lie inside (φ < 0), on the surface (|φ| ≤ 1e-3 s, where rigid.py's
+- φ bins: how many water particles lie inside (φ < −1e-3 s), on the surface (|φ| ≤ 1e-3 s, where rigid.py's
   exclusion step puts a particle it found inside), and in the bands up to one particle spacing s outside;
 - overlap: the volume the water particles within s/2 of the bottom face and of the side faces take from the
   cube, Σ (s/2 − φ) s², over the cube's volume (a water particle stands for a cube of side s about its centre,

@@ -1,22 +1,29 @@
 #!/usr/bin/env bash
-# Time the README's test command (the pytest part, in the existing .venv) with --durations, and keep the figures.
+# Time the README's test command (the pytest part, in the .venv the README's test command made) with --durations,
+# and keep the figures.
 #   bash bench/suite_time.sh warm|cold
-# warm: Taichi's offline cache as it is (a machine that has run the suite before; CI's runners may be such);
+# warm: Taichi's offline cache as it is (a machine that has run the suite before);
 # cold: an empty cache (TI_OFFLINE_CACHE_FILE_PATH set to a fresh temporary folder), every kernel compiled.
-# Writes bench/results/test_durations_<mode>_cpu.txt: a header (date, commit, cores, mode), the summary line and
-# the 40 slowest items.
+# The tests start the command line in subprocesses, which import the installed package, so this tree is installed
+# into .venv first (pip install --no-deps .). Writes bench/results/test_durations_<mode>_cpu.txt: a header (date,
+# commit, cores, mode, exit status, wall time), pytest's summary line, the 40 slowest items and any FAILED lines.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mode="${1:-warm}"
+if [ ! -x .venv/bin/python ]; then
+  echo "no .venv here: run the README's test command first (it creates .venv and installs the test extras)" >&2
+  exit 2
+fi
+tmp="$(mktemp -d)"
+trap 'rm -rf "$tmp"' EXIT
 case "$mode" in
   warm) ;;
-  cold) export TI_OFFLINE_CACHE_FILE_PATH="$(mktemp -d)" ;;
+  cold) export TI_OFFLINE_CACHE_FILE_PATH="$tmp/taichi_cache" ;;
   *) echo "usage: bash bench/suite_time.sh warm|cold" >&2; exit 2 ;;
 esac
 out="bench/results/test_durations_${mode}_cpu.txt"
-# the tests start the command line in subprocesses, which import the installed package: install this tree first
+log="$tmp/pytest.log"
 .venv/bin/pip install -q --no-deps .
-log="$(mktemp)"
 start=$(date +%s)
 set +e
 .venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=40 tests >"$log" 2>&1
@@ -24,11 +31,10 @@ rc=$?
 set -e
 end=$(date +%s)
 {
-  echo "pytest -q -n 2 --dist loadfile --durations=40 tests ($mode Taichi cache), $(date -u +%F), commit $(git rev-parse --short HEAD), $(nproc) cores: exit $rc, $((end - start)) s wall"
-  grep -E "^[0-9]+ (passed|failed)|passed|failed" "$log" | tail -1
-  sed -n '/slowest 40 durations/,/^$/p' "$log"
-  grep -E "^FAILED" "$log" || true
+  echo "pytest -q -n 2 --dist loadfile --durations=40 tests ($mode Taichi cache), $(date -u +%F), commit $(git describe --always --dirty), $(nproc) cores: exit $rc, $((end - start)) s wall"
+  grep -E "(passed|failed|error)" "$log" | grep -E " in [0-9.]+s" | tail -1 || true
+  grep -E "slowest 40 durations|^[0-9.]+s (setup|call|teardown) " "$log" || true
+  grep -E "^(FAILED|ERROR)" "$log" || true
 } >"$out"
 cat "$out"
-rm -f "$log"
 exit $rc

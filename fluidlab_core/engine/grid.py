@@ -88,8 +88,8 @@ def solid_share(model: ti.template(), I):
 def in_contact(model: ti.template(), I, m_s, m_f, vol):
     """1.0 if node I, with solid mass m_s, fluid mass m_f and particle volume vol (m³), is a contact node, else
     0.0: both fields have mass there and the particles, with the walls' and statics' share of the stencil, fill
-    it. Computed once per node and passed to field_velocity for both fields (solid_share evaluates every
-    static's SDF)."""
+    it. The fast solver computes it once per node and only where both fields have mass, and passes it to
+    field_velocity for both fields (solid_share evaluates every static's SDF)."""
     fill = vol * model.inv_dx ** 3 + solid_share(model, I)
     return ti.cast(m_s > model.mass_floor and m_f > model.mass_floor and fill >= model.contact_fill, float)
 
