@@ -14,7 +14,8 @@ signed distance φ to the cube's surface (the box's SDF; negative inside), and:
   cube, Σ (s/2 − φ) s², over the cube's volume (a water particle stands for a cube of side s about its centre,
   so at φ ≥ s/2 it takes nothing);
 - vn: the mean velocity of those bottom-face particles away from the cube relative to its mean velocity, and
-  the cube's vertical velocity (mm/s).
+  the cube's vertical velocity (mm/s);
+- tilt: the angle between the cube's vertical axis and the world's (degrees).
 Writes the table to --out (default bench/results/body_contact_layer.txt).
 """
 from __future__ import annotations
@@ -59,7 +60,7 @@ def main():
     lines = [f"# body_contact_layer: {args.res} cells (dx {dx * 1e3:.2f} mm), particle spacing s = {s * 1e3:.3f} mm, "
              f"{scene.substeps} substeps per 2 ms step; 500 kg/m³ rigid cube dropped from 10 mm (Archimedes 0.50)",
              "  t s  frac  | water by φ: inside  on-surface  (0,s/4)  [s/4,s/2)  [s/2,3s/4)  [3s/4,s) | overlap/V: "
-             "bottom  sides | vn bottom mm/s  cube vz mm/s"]
+             "bottom  sides | vn bottom mm/s  cube vz mm/s | tilt °"]
 
     def log(line):
         print(line, flush=True)
@@ -91,7 +92,7 @@ def main():
         vn = -((vw[bottom_face] - vc) @ rot)[:, 2]  # away from the bottom face (its outward normal is −z)
         log(f"{sim.time:5.2f}  {frac:.3f} | {counts[0]:16d}  {counts[1]:10d}  {counts[2]:7d}  {counts[3]:9d}  "
             f"{counts[4]:10d}  {counts[5]:8d} | {overlap[bottom_face].sum():17.3f}  {overlap[side_face].sum():5.3f} | "
-            f"{vn.mean() * 1e3:+14.3f}  {vc[2] * 1e3:+12.2f}")
+            f"{vn.mean() * 1e3:+14.3f}  {vc[2] * 1e3:+12.2f} | {np.degrees(np.arccos(np.clip(rot[2, 2], -1, 1))):.2f}")
     log(f"# {time.time() - t0:.0f} s")
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
