@@ -15,7 +15,7 @@ Grid update of node i with mass m_i and momentum (mv)_i after P2G (SI units):
 Two velocity fields (scenes with both fluids and solids; constitutive models registered with fluid=True are
 fluids): P2G scatters the fluids' mass and momentum into one field and everything else's into another, and the
 volume of all particles, V⁰_p det F_p, into a third. A node where both fields have mass and whose volume fill
-φ_i = Σ_p w_ip V_p / Δx³, plus the share of its stencil beyond the walls or inside statics (`solid_share`), is at
+φ_i = Σ_p w_ip V_p / Δx³, plus the share of its stencil beyond the walls or inside statics (`solid_share_of`), is at
 least the scene's `contact_fill` (default 0.97) is a contact node: both fields
 get the velocity of their summed mass and momentum, as on a single-velocity grid. Elsewhere each field has
 its own velocity (the same boundary conditions), and G2P gathers each particle from its own field.
@@ -66,7 +66,7 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
 
 
 @ti.func
-def solid_share(model: ti.template(), I):
+def solid_share_of(model: ti.template(), I):
     """The share of node I's stencil that lies beyond the domain's walls or inside a static (the quadratic
     B-spline's weight there, statics.bspline_cdf; each static's surface taken as a plane at its distance φ).
     Walls and statics are not void: a liquid and a body that meet beside one fill such a node only up to this
@@ -84,13 +84,21 @@ def solid_share(model: ti.template(), I):
     return share
 
 
+@ti.kernel
+def fill_solid_share(model: ti.template()):
+    """model.solid_share[I] = solid_share_of(model, I) for every node: walls and statics do not move, so the share
+    is computed once, when the model is uploaded, and the grid update reads it."""
+    for I in ti.grouped(model.solid_share):
+        model.solid_share[I] = solid_share_of(model, I)
+
+
 @ti.func
 def in_contact(model: ti.template(), I, m_s, m_f, vol):
     """1.0 if node I, with solid mass m_s, fluid mass m_f and particle volume vol (m³), is a contact node, else
     0.0: both fields have mass there and the particles, with the walls' and statics' share of the stencil, fill
-    it. The fast solver computes it once per node and only where both fields have mass, and passes it to
-    field_velocity for both fields (solid_share evaluates every static's SDF)."""
-    fill = vol * model.inv_dx ** 3 + solid_share(model, I)
+    it (the walls' and statics' share from model.solid_share, fill_solid_share). The fast solver computes it once
+    per node and passes it to field_velocity for both fields."""
+    fill = vol * model.inv_dx ** 3 + model.solid_share[I]
     return ti.cast(m_s > model.mass_floor and m_f > model.mass_floor and fill >= model.contact_fill, float)
 
 

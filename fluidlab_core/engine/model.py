@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from fluidlab_core.engine import constitutive, statics
+from fluidlab_core.engine import constitutive, grid, statics
 from fluidlab_core.engine.emitters import EmitterModel
 from fluidlab_core.engine.rigid import RigidModel
 from fluidlab_core.engine.state import State, StateBuffer
@@ -100,6 +100,9 @@ class Model:
         self.fluid_models = [k for k, m in enumerate(self.constitutive) if m.fluid]
         self.two_fields = 0 < len(self.fluid_models) < len(self.constitutive)
         self.contact_fill = float(spec.contact_fill)
+        # the contact test's share of each node's stencil beyond the walls or inside statics (grid.solid_share_of),
+        # constant: filled once in upload()
+        self.solid_share = ti.field(real, shape=self.grid_shape) if self.two_fields else None
         np_real = self.np_real
         self._uploads = []  # (field, numpy data) to upload once everything is allocated (module docstring)
         self.params = []
@@ -162,6 +165,8 @@ class Model:
         for target, data in self._uploads:
             target.from_numpy(data)
         self._uploads = []
+        if self.two_fields:
+            grid.fill_solid_share(self)
 
     @property
     def np_real(self):

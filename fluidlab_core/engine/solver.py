@@ -126,11 +126,7 @@ class Solver:
                     vol = transfer.reduce_scalar_copies(self.copies_vol, self.copies, I)
                 else:
                     m_f, mv_f, vol = self.grid_m_f[I], self.grid_mv_f[I], self.grid_vol[I]
-                # the contact test once per node, and its statics' SDFs only where both fields have mass
-                # (this kernel is forward only, so a branch is fine here)
-                c = 0.0
-                if m > self.model.mass_floor and m_f > self.model.mass_floor:
-                    c = grid.in_contact(self.model, I, m, m_f, vol)
+                c = grid.in_contact(self.model, I, m, m_f, vol)  # once per node, for both fields
                 vn = grid.field_velocity(self.model, I, 0, c, m, mv, m_f, mv_f, state, s_in)
                 vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
                 self.grid_m[I] = m

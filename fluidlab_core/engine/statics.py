@@ -228,7 +228,7 @@ class Collider:
 
         @ti.func
         def stencil_fill(x):
-            """The share of a node's B-spline stencil inside the collider (grid.solid_share), its surface taken
+            """The share of a node's B-spline stencil inside the collider (grid.solid_share_of), its surface taken
             as a plane at distance φ(x): the contact test counts it as filled."""
             return bspline_cdf(-sdf(x) / dx)
 
