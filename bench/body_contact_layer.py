@@ -46,15 +46,11 @@ def main():
     from fluidlab_core.shapes import Box
 
     fl.init()
-    width, level, side, drop = 0.12, 0.06, 0.04, 0.01
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1)
-    scene.add_particles(Box((0, 0, 0), (width, width, level)), M.WATER, name="water")
-    c, bottom = width / 2, level + drop
-    scene.add_particles(Box((c - side / 2, c - side / 2, bottom), (c + side / 2, c + side / 2, bottom + side)),
-                        M.Rigid("rigid_500", density=500.0), name="cube")
-    V._substeps(scene, None)
-    sim = scene.build()
+    width, side = 0.12, 0.04
+    sim, scene = V.floating_cube_sim(args.res, M.Rigid("rigid_500", density=500.0), M.WATER, width=width, side=side)
+    c = width / 2
     dx, s, h = width / args.res, scene.particle_spacing, side / 2
+    cube = Box((-h, -h, -h), (h, h, h))  # in the cube's frame
     rest = sim.positions("cube").astype(np.float64)
     q = rest - rest.mean(0)
     lines = [f"# body_contact_layer: {args.res} cells (dx {dx * 1e3:.2f} mm), particle spacing s = {s * 1e3:.3f} mm, "
@@ -78,8 +74,8 @@ def main():
         u, _, vt = np.linalg.svd((xc - centre).T @ q)
         rot = u @ vt
         local = (xw - centre) @ rot  # Rᵀ (x − c) for each particle
-        dist = np.abs(local) - h
-        phi = np.where(np.all(dist < 0, axis=1), dist.max(1), np.linalg.norm(np.maximum(dist, 0.0), axis=1))
+        phi = cube.sdf(local)
+        dist = np.abs(local) - h  # per axis: the largest says which face is nearest
         near = phi < s
         face = np.argmax(dist, axis=1)
         bottom_face = near & (face == 2) & (local[:, 2] < 0)

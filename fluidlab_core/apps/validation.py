@@ -185,6 +185,23 @@ def submerged(x_liquid, x_body, axis, side: float, dx: float, spacing: float):
     return float((surface - lowest_face) / side), float((x_body[:, 2] < surface).mean()), surface
 
 
+def floating_cube_sim(res: int, body, liquid, drop: float = 0.01, width: float = 0.12, level: float = 0.06,
+                      side: float = 0.04):
+    """(simulator, scene) of floating_cube's set-up: `level` of `liquid` in a closed tank `width` wide and 0.12 m
+    tall, `res` cells across, a cube of `side` of material `body` centred over it with its bottom `drop` above
+    the surface; particles named "water" and "cube"; the stable substep count."""
+    import fluidlab_core as fl
+    from fluidlab_core.shapes import Box
+
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1)
+    scene.add_particles(Box((0, 0, 0), (width, width, level)), liquid, name="water")
+    c, bottom = width / 2, level + drop
+    scene.add_particles(Box((c - side / 2, c - side / 2, bottom), (c + side / 2, c + side / 2, bottom + side)),
+                        body, name="cube")
+    _substeps(scene, None)
+    return scene.build(), scene
+
+
 def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, drop: float = 0.01,
                   width: float = 0.12, level: float = 0.06, side: float = 0.04, every: float = 0.05,
                   body=None, liquid=None, progress=None) -> dict:
@@ -193,19 +210,12 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
     0.12 m tall, `res` cells across, the stable substep count. Every `every` seconds: the cube's lowest face
     below the far-field surface over its side (`fraction`; far field: more than a side from the cube's axis in
     x or y) and the share of its particles below that surface (`share`). progress(t, fraction) if given."""
-    import fluidlab_core as fl
     from fluidlab_core import materials as M
-    from fluidlab_core.shapes import Box
 
     liquid = liquid or M.WATER
     body = body or M.Rigid(f"rigid_{density:g}", density=density)
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1)
-    scene.add_particles(Box((0, 0, 0), (width, width, level)), liquid, name="water")
-    c, bottom = width / 2, level + drop
-    scene.add_particles(Box((c - side / 2, c - side / 2, bottom), (c + side / 2, c + side / 2, bottom + side)),
-                        body, name="cube")
-    _substeps(scene, None)
-    sim = scene.build()
+    sim, scene = floating_cube_sim(res, body, liquid, drop, width, level, side)
+    c = width / 2
     dx, s = width / res, scene.particle_spacing
     times, fractions, shares = [], [], []
     n = max(1, int(round(every / scene.dt)))
