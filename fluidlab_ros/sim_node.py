@@ -75,7 +75,7 @@ from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.stream import (DONE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess, udp_only,
+from fluidlab_ros.stream import (DONE, HANDSHAKE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess, udp_only,
                                  row_state, rows_for, write_row)
 from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
@@ -83,6 +83,7 @@ from fluidlab_ros import workers
 
 MODES = ("twin", "robot")
 PLAN_PICKUP_TIMEOUT = 5.0  # s the stream process may take to take a plan (nothing is sent meanwhile)
+HANDSHAKE_TIMEOUT = 10.0  # s for a new stream process's publishers to be matched and acknowledged (stream.handshake)
 STATE_EVERY = 5  # a recording holds every command, and the arm states and tool poses of every 5th
 TARGETS = ("twin", "robot")
 
@@ -881,19 +882,25 @@ class SimNode(Node):
             stream.start_ns = int(start_wall * 1e9)
             if stream.recorder is not None:
                 stream.metadata.update(start_time=start_wall, start_time_iso=time.strftime(
-                    "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z")
+                    "%Y-%m-%dT%H:%M:%S", time.gmtime(start_wall)) + "Z",
+                    publisher_handshake_s=float(buf.floats[HANDSHAKE]))
                 stream.recorder.write_metadata(stream.metadata)
         job = {"buffer": buf.spec(), "velocities": pl.velocities, "positions": pl.positions,
                "control_rate": self.control_rate, "controller_order": self.controller_order,
                "to_robot": stream.to_robot, "mode": self.mode, "late_tick_limit": self.late_tick_limit,
                "joint_state_timeout": self.joint_state_timeout, "joint_state_topic": self.joint_state_topic,
                "n_task0": n_task0, "twin": self.twin.snapshot(), "feedback_gain": self.feedback_gain,
-               "feedback_max_velocity": self.feedback_max_velocity, "margin": self.margin, "t0": t0}
+               "feedback_max_velocity": self.feedback_max_velocity, "margin": self.margin, "t0": t0,
+               # who must hear the plan from its first command: whoever the node's own publishers reach
+               "subscribers": {"commands": self.pub_commands.get_subscription_count(),
+                               "controller": (self.pub_controller.get_subscription_count()
+                                              if self.pub_controller is not None else 0)},
+               "handshake_timeout": HANDSHAKE_TIMEOUT}
         sp.jobs.put(job)
         seen = 0
         failure = ""
         started = False
-        pickup_limit = time.monotonic() + PLAN_PICKUP_TIMEOUT
+        pickup_limit = time.monotonic() + PLAN_PICKUP_TIMEOUT + HANDSHAKE_TIMEOUT
         try:
             while True:
                 died = wait([sp.proc.sentinel], timeout=T)
@@ -905,7 +912,8 @@ class SimNode(Node):
                         pass  # handled below
                     elif time.monotonic() > pickup_limit:
                         failure = (f"the command stream process did not take the plan within "
-                                   f"{PLAN_PICKUP_TIMEOUT:g} s; nothing was sent")
+                                   f"{PLAN_PICKUP_TIMEOUT + HANDSHAKE_TIMEOUT:g} s (its handshake included); "
+                                   f"at most one zero command was sent")
                         break
                     else:
                         continue

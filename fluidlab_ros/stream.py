@@ -14,6 +14,9 @@ node runs in it, so nothing else can take its GIL. It asks for SCHED_FIFO where 
     RunBuffer (a file in /dev/shm) <-- every command ----- per command: time, index, command, twin q, v, a
        stop flag + reason ------------------------------>  read at every tick (cancel, ~/stop, disarm)
        heartbeat <---------------------------------------- written at every tick
+                                                           before a plan's first command: the handshake
+                                                           (every subscriber of the node's publishers has
+                                                           matched this process's, and acknowledged a zero)
     Follower (sim_node): reads the buffer at the control rate, records, feeds the fluid twin, mirrors the
     twin arm; watchdog: the process died (its sentinel) or its heartbeat is older than late_tick_limit ->
     kill it, send the stop ramp from the node's own publishers, start a new stream process.
@@ -34,7 +37,7 @@ import numpy as np
 # header slots of a RunBuffer (int64)
 COUNT, STOP, INDEX, LATE_TICKS, PHASE, DONE = range(6)
 # float64 slots
-HEARTBEAT, MAX_LATE, T0 = range(3)
+HEARTBEAT, MAX_LATE, T0, HANDSHAKE = range(4)
 PHASES = ("approach", "task", "stopping", "done")
 REASON_BYTES = 512
 
@@ -153,6 +156,37 @@ def udp_only():
     os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
 
 
+def handshake(publishers: list, send_zero, timeout: float) -> str:
+    """Make sure every subscriber hears a plan from its first command: '' once it holds, or why not.
+
+    publishers: (publisher, topic, expected) for each topic the plan goes to, where expected is how many
+    subscriptions the node's own, long-standing publisher on that topic has matched. This process's publishers
+    are new DDS writers whenever the process is new (at start, and after a take-over), and a subscriber that has
+    not matched one yet drops what it sends: a controller would see the stream start at its second or third
+    command, a velocity step outside the arm's acceleration limit (seen under load in CI, the first command
+    after a take-over: 0.028 rad/s from rest, 28 rad/s^2 against 10). So: wait until each publisher has
+    matched `expected` subscriptions (the writer's side), then send one zero command (the arm is at rest
+    before any plan, so a zero changes nothing) and wait until every matched subscriber acknowledged it (the
+    reader's side: a subscriber acknowledges only a writer it has matched). Then the plan starts. Typically
+    5 ms when nothing is new, up to seconds (DDS discovery) after a new process or subscriber."""
+    from rclpy.duration import Duration
+
+    deadline = time.monotonic() + timeout
+    for pub, topic, expected in publishers:
+        while pub.get_subscription_count() < expected:
+            if time.monotonic() > deadline:
+                return (f"the command stream's publisher on {topic} matched {pub.get_subscription_count()} of the "
+                        f"{expected} subscribers the node's publisher has within {timeout:g} s; nothing was sent")
+            time.sleep(0.002)
+    send_zero()
+    for pub, topic, _ in publishers:
+        left = max(0.0, deadline - time.monotonic())
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            return (f"the subscribers of {topic} did not acknowledge the stream's opening zero command within "
+                    f"{timeout:g} s; nothing else was sent (the arm stays at rest)")
+    return ""
+
+
 def stream_process(config: dict, jobs, results):
     """Entry point of the stream process (multiprocessing, spawn). config: robot_model, mode, node_name,
     commands_topic, controller_topic (or ''), joint_state_topic, joint_state_qos, realtime_priority."""
@@ -212,6 +246,13 @@ def stream_process(config: dict, jobs, results):
         if to_robot and pub_ctl is not None:
             pub_ctl.publish(msg)
 
+    def shake(job: dict) -> str:
+        pubs = [(pub, config["commands_topic"], int(job["subscribers"]["commands"]))]
+        if job["to_robot"] and pub_ctl is not None:
+            pubs.append((pub_ctl, config["controller_topic"], int(job["subscribers"]["controller"])))
+        return handshake(pubs, lambda: publish(np.zeros(limits.dof), np.asarray(job["controller_order"]),
+                                               bool(job["to_robot"])), float(job["handshake_timeout"]))
+
     results.put({"kind": "ready", "pid": os.getpid(), "realtime": rt})
     parent = mp.parent_process()
     try:
@@ -225,7 +266,7 @@ def stream_process(config: dict, jobs, results):
             if job is None:
                 break
             try:
-                out = run(job, limits, publish, measured)
+                out = run(job, limits, publish, measured, shake)
             except Exception as err:  # noqa: BLE001 - the node learns why; the process serves the next plan
                 out = {"kind": "done", "outcome": f"internal error in the command stream: {err!r}", "reflex": None}
             results.put(out)
@@ -246,10 +287,11 @@ def _realtime(priority: int) -> str:
                 f"or the interpreter CAP_SYS_NICE for a stream that other processes cannot delay")
 
 
-def run(job: dict, limits, publish, measured: dict) -> dict:
-    """Stream one verified plan: command k at t0 + k T (Schedule), each checked by the twin arm; a stop
-    request, a tick later than late_tick_limit, lost joint states (robot mode) or a reflex end it, with a
-    jerk-limited ramp to rest unless the (twin) arm already stopped."""
+def run(job: dict, limits, publish, measured: dict, shake) -> dict:
+    """Stream one verified plan: after the handshake (shake(job), see handshake()), command k at t0 + k T
+    (Schedule), each checked by the twin arm; a stop request, a tick later than late_tick_limit, lost joint
+    states (robot mode) or a reflex end it, with a jerk-limited ramp to rest unless the (twin) arm already
+    stopped."""
     from fluidlab_ros.pipeline import command_budgets
     from fluidlab_ros.schedule import Schedule
     from fluidlab_ros.stopping import stop_ramp
@@ -291,6 +333,14 @@ def run(job: dict, limits, publish, measured: dict) -> dict:
                 corr = corr + np.clip(target - corr, -delta, delta)
         return cmds[k] + corr
 
+    t_shake = time.monotonic()
+    problem = shake(job)
+    buf.floats[HANDSHAKE] = time.monotonic() - t_shake
+    if problem:
+        buf.floats[T0] = time.monotonic()
+        buf.ints[PHASE], buf.ints[DONE] = 3, 1
+        buf.close()
+        return {"kind": "done", "outcome": problem, "reflex": None, "twin": twin.snapshot()}
     gc_was_enabled = gc.isenabled()
     gc.disable()  # the cyclic collector stops the thread for tens of ms over a large heap
     # the node's deadline for command 0, or 5 ms from now if the plan came later than that (nothing has been sent:
