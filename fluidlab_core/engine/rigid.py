@@ -26,8 +26,9 @@ its side below the surface, Archimedes 0.50). The liquid's push at a contact nod
 own mass there; the body receives it only as the liquid it presses into compresses the body's bottom layers
 and so builds the pressure gradient (from J above) that holds the body up, a slow and history-dependent route.
 Measured and ruled out: the exclusion step (made two-way, or pushing to s/4 outside: the same creep) and the
-layer-to-layer alternation of J (a linear fit of J over the body still holds it in a band). Not yet tried: giving the body the
-liquid's push at its nodes directly.
+layer-to-layer alternation of J (a linear fit of J over the body still holds it in a band). Tried and not kept: giving the
+body the liquid's push at its contact nodes directly (a frictionless wall-like contact law, no stress in the body): right
+from rest at Archimedes' depth (0.51-0.53), but a landing cube then stops far too high (0.27-0.30).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
