@@ -440,6 +440,60 @@ class Simulator:
         return render(layers, path, view=view, bounds=(self.scene.lower, self.scene.upper), size=size, title=title)
 
     # --- state ------------------------------------------------------------------------------------------
+    def start_hydrostatic(self) -> float:
+        """Give the liquids the compression of hydrostatic equilibrium in their present positions, so that a scene
+        built at rest (every particle at J = 1) does not first fall into its own pressure and ring.
+
+        A weakly compressible liquid (engine/constitutive.py) has the pressure p = λ (1 − J). Each particle of a
+        fluid material gets J = 1 − p/λ, F = J^(1/3) 1, with p = |g| × (the mass above it in its column of the
+        grid, Δx × Δx across, plus half its own) / Δx²: the weight per unit area of everything over it, liquid
+        or not, as in layered hydrostatics p(z) = |g| ∫_z ρ dz'. Nothing else changes (positions, velocities,
+        solids' F). Meant for a state at rest with gravity along an axis; returns the largest 1 − J given."""
+        from fluidlab_core.engine import constitutive
+
+        g = np.asarray(self.model.gravity, dtype=np.float64)
+        axis = int(np.argmax(np.abs(g)))
+        if not np.any(g) or np.count_nonzero(g) != 1:
+            raise ValueError(f"start_hydrostatic needs gravity along one axis, got {tuple(g)} m/s²")
+        up = -np.sign(g[axis])
+        state = self.get_state()
+        x = state.x.astype(np.float64)
+        mass = self.model.mass.to_numpy().astype(np.float64)
+        active = self.active_rows()
+        if active is None:
+            active = np.ones(len(x), dtype=bool)
+        lam = np.zeros(len(x))
+        for h in self.handles.values():
+            if constitutive.get(h.material.model).fluid:
+                lam[h.slice] = h.material.lam
+        dx = self.model.dx
+        across = [d for d in range(3) if d != axis]
+        rows = np.nonzero(active)[0]
+        column = np.floor((x[rows][:, across] - np.asarray(self.model.origin)[across]) / dx).astype(np.int64)
+        key = column[:, 0] * (1 << 32) + column[:, 1]
+        height = up * x[rows, axis]
+        order = np.lexsort((-height, key))  # by column, then from the top down
+        key_sorted, m_sorted = key[order], mass[rows][order]
+        above = np.cumsum(m_sorted) - m_sorted  # mass before this particle in the sorted order ...
+        starts = np.r_[0, np.nonzero(np.diff(key_sorted))[0] + 1]
+        first = np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+        above -= (np.cumsum(m_sorted) - m_sorted)[first]  # ... within its own column
+        pressure = np.zeros(len(x))
+        pressure[rows[order]] = abs(g[axis]) * (above + 0.5 * m_sorted) / dx ** 2
+        fluid = lam > 0.0
+        J = np.ones(len(x))
+        J[fluid] = 1.0 - pressure[fluid] / lam[fluid]
+        if np.any(J[fluid] < 0.5):
+            worst = int(np.argmin(np.where(fluid, J, np.inf)))
+            raise ValueError(f"start_hydrostatic: particle {worst} would be compressed to J = {J[worst]:.3f} "
+                             f"(pressure {pressure[worst]:.4g} Pa against a bulk modulus of {lam[worst]:.4g} Pa); "
+                             f"the liquid is too soft for its depth")
+        F = state.F.copy()
+        F[fluid] = (J[fluid] ** (1.0 / 3.0))[:, None, None] * np.eye(3)
+        state.F = F.astype(state.F.dtype)
+        self.set_state(state)
+        return float(np.max(1.0 - J[fluid])) if fluid.any() else 0.0
+
     def get_state(self) -> State:
         """A copy of the whole state: particles (x, v, C, F in the solver's precision), tool poses (float64) and
         the step count."""

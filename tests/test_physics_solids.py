@@ -151,25 +151,28 @@ def test_more_plastic_bodies_dissipate_more_energy():
 
 
 def test_rayleigh_taylor_heavy_over_light_overturns():
-    """A heavy liquid (3000 kg/m³) above a light one (1000 kg/m³), the interface seeded with a 5 mm cosine of
-    wavelength W = 0.1 m. Linear theory (inviscid, deep layers) grows the mode as exp(σt) with
+    """A heavy liquid (3000 kg/m³) above a light one (1000 kg/m³), the interface seeded with a 1.5 mm cosine of
+    wavelength W = 0.1 m (kA = 0.09, the linear regime), both layers started at their hydrostatic compression
+    (Simulator.start_hydrostatic). Linear theory (inviscid, deep layers) grows the mode as exp(σt) with
     σ = sqrt(A k g) = 17.6 /s (Atwood number A = 0.5, k = 2π/W). The spike amplitude's growth rate, fitted over
-    0.04-0.2 s, must be between 0.4 and 1.2 times σ: at 32 cells per wavelength the scheme's numerical
-    dissipation slows the growth (we measure about 0.6 σ; it was 0.15 σ at 16 cells per wavelength).
+    0.04-0.2 s, must be between 0.7 and 1.1 times σ at 32 cells per wavelength: we measure 0.83 σ there and at 64
+    (bench/results/convergence_cpu.txt). The bound was 0.4-1.2 with the earlier set-up, a 5 mm seed (kA = 0.31,
+    past the linear regime) from J = 1, which measured 0.61 σ: the layers then first fell into their own
+    pressure and the spike jumped by a millimetre in 20 ms before growing.
     The same set-up with one density does not move: its seeded 'interface' keeps its amplitude within a cell,
-    and the top layer only settles by its compression ρgH/λ (under 2 mm)."""
+    and the top layer's centroid stays within a quarter millimetre (it settled by ρgH/λ, up to 2 mm, from J = 1)."""
     k = 2 * np.pi / 0.1
     atwood = (M.RT_HEAVY.density - M.RT_LIGHT.density) / (M.RT_HEAVY.density + M.RT_LIGHT.density)
     sigma_theory = np.sqrt(atwood * k * G)
-    rt = validation.rayleigh_taylor(M.RT_HEAVY, M.RT_LIGHT, res=64, substeps=12)
+    rt = validation.rayleigh_taylor(M.RT_HEAVY, M.RT_LIGHT, res=64, substeps=12, amp=0.0015, hydrostatic=True)
     sigma, spikes, drop_rt, dx = rt["sigma"], rt["spikes"], rt["drop"], rt["dx"]
-    uniform = validation.rayleigh_taylor(M.RT_LIGHT, M.RT_LIGHT, res=64, substeps=12)
+    uniform = validation.rayleigh_taylor(M.RT_LIGHT, M.RT_LIGHT, res=64, substeps=12, amp=0.0015, hydrostatic=True)
     u_spikes, drop_uniform = uniform["spikes"], uniform["drop"]
     report("rayleigh-taylor", dx_m=dx, growth_rate_per_s=sigma, theory_per_s=sigma_theory,
            ratio=sigma / sigma_theory, final_spike_m=spikes[-1], heavy_centroid_drop_m=drop_rt,
            uniform_spike_range_m=(round(u_spikes.min(), 4), round(u_spikes.max(), 4)),
            uniform_centroid_drop_m=drop_uniform)
-    assert 0.4 * sigma_theory <= sigma <= 1.2 * sigma_theory
+    assert 0.7 * sigma_theory <= sigma <= 1.1 * sigma_theory
     assert spikes[-1] > 4 * spikes[0]
     assert np.all(np.abs(u_spikes - u_spikes[0]) < dx)
-    assert abs(drop_uniform) < 0.002
+    assert abs(drop_uniform) < 0.00025

@@ -143,10 +143,12 @@ def _layer_shape(width, thick, z0, z1, mid, amp, above):
 
 
 def rayleigh_taylor(top, bottom, res: int = 64, width: float = 0.1, height: float = 0.2, amp: float = 0.005,
-                    duration: float = 0.2, substeps: int | None = 12) -> dict:
+                    duration: float = 0.2, substeps: int | None = 12, hydrostatic: bool = False) -> dict:
     """The seeded two-layer slab, `res` cells over its height (res/2 per wavelength W = width). Reported: times,
     spike amplitudes (m; where the interface starts lowest, x = W/2, how far below the mid-plane the top liquid
-    reaches), the top layer's centroid drop (m), σ fitted over 0.04–0.2 s and σ from linear theory."""
+    reaches), the top layer's centroid drop (m), σ fitted over 0.04–0.2 s and σ from linear theory.
+    hydrostatic: start both layers with their hydrostatic compression (Simulator.start_hydrostatic) instead of
+    at J = 1."""
     import fluidlab_core as fl
 
     dx = height / res
@@ -157,6 +159,8 @@ def rayleigh_taylor(top, bottom, res: int = 64, width: float = 0.1, height: floa
     scene.add_particles(_layer_shape(width, thick, 0.0, height, mid, amp, above=True), top, name="top")
     _substeps(scene, substeps)
     sim = scene.build()
+    if hydrostatic:
+        sim.start_hydrostatic()
     z0 = sim.positions("top")[:, 2].mean()
     times, spikes = [], []
     while sim.time <= duration:
@@ -304,9 +308,10 @@ def magnus(res: int = 64, alpha: float = 1.0, dims: int = 2, seconds: float = 0.
                 times=np.array(times), displacement=np.array(disp), velocity=np.array(vel), spin=np.array(spin))
 
 
-def sound_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4, liquid=None) -> dict:
+def sound_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4, liquid=None, hydrostatic: bool = False) -> dict:
     """The column of `liquid` (default the catalogue's water), `depth` deep in a 12 cm slab tank, `res` cells
-    across, released at rest: the mean pressure of a one-cell layer of particles at mid-depth after every 1 ms
+    across, released at rest (at J = 1, or with `hydrostatic` at its hydrostatic compression,
+    Simulator.start_hydrostatic): the mean pressure of a one-cell layer of particles at mid-depth after every 1 ms
     step, and ring_figures of it."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
@@ -318,6 +323,8 @@ def sound_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4, liquid=
     scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, depth)), liquid, name="water")
     _substeps(scene, None)
     sim = scene.build()
+    if hydrostatic:
+        sim.start_hydrostatic()
     x0 = sim.positions("water")
     middle = np.abs(x0[:, 2] - 0.5 * depth) < 0.5 * dx  # a layer at mid-depth
     times, pressures = [], []
