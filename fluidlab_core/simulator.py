@@ -474,10 +474,10 @@ class Simulator:
         height = up * x[rows, axis]
         order = np.lexsort((-height, key))  # by column, then from the top down
         key_sorted, m_sorted = key[order], mass[rows][order]
-        above = np.cumsum(m_sorted) - m_sorted  # mass before this particle in the sorted order ...
-        starts = np.r_[0, np.nonzero(np.diff(key_sorted))[0] + 1]
+        before = np.cumsum(m_sorted) - m_sorted  # the mass before each particle in the sorted order
+        starts = np.r_[0, np.nonzero(np.diff(key_sorted))[0] + 1]  # where each column begins
         first = np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-        above -= (np.cumsum(m_sorted) - m_sorted)[first]  # ... within its own column
+        above = before - before[first]  # the mass above each particle in its own column
         pressure = np.zeros(len(x))
         pressure[rows[order]] = abs(g[axis]) * (above + 0.5 * m_sorted) / dx ** 2
         fluid = lam > 0.0
