@@ -379,6 +379,16 @@ class SimNode(Node):
         response.success, response.message = True, "ramping the arm to rest"
         return response
 
+    def _no_controller(self) -> str:
+        """Why commands to the robot would reach no controller, or '': nothing subscribes to command_topic. A
+        controller that came up in the middle of a stream would take its first command mid-motion, a velocity
+        step from rest; so a robot goal needs the controller there before it starts (and the stream's handshake
+        then waits for it to hear the stream from its first command, stream.handshake)."""
+        if self.pub_controller is None or self.pub_controller.get_subscription_count() > 0:
+            return ""
+        return (f"nothing subscribes to {self.pub_controller.topic_name} (is the velocity controller loaded and "
+                f"active?)")
+
     def _arm(self, request, response):
         if self.mode != "robot":
             if request.data and self.twin.reflex is not None:
@@ -394,6 +404,9 @@ class SimNode(Node):
                 response.success = False
                 response.message = (f"cannot arm: no joint states on {self.joint_state_topic} for "
                                     f"{age:.3g} s (timeout {self.joint_state_timeout} s)")
+                return response
+            if self._no_controller():
+                response.success, response.message = False, f"cannot arm: {self._no_controller()}"
                 return response
             self.armed = True
             response.success, response.message = True, "armed: ~/execute goals with target 'robot' may command the arm"
@@ -600,6 +613,8 @@ class SimNode(Node):
             age = self._joint_state_age()
             if age > self.joint_state_timeout:
                 raise ValueError(f"target 'robot': no joint states on {self.joint_state_topic} for {age:.3g} s")
+            if self._no_controller():
+                raise ValueError(f"target 'robot': {self._no_controller()}")
         scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
         if not (0 < scale <= 1):
             raise ValueError(f"speed_scale must be in (0, 1] (0 means 1), got {g.speed_scale}")

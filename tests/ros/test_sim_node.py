@@ -396,3 +396,34 @@ def test_sim_node_help_and_unknown_arguments(ros_env):
     out = subprocess.run([console_script("sim_node"), "--bogus"], capture_output=True, text=True, timeout=60,
                          env=ros_env)
     assert out.returncode == 2 and "unknown arguments ['--bogus']" in out.stderr
+
+
+def test_robot_mode_refuses_to_arm_until_a_controller_subscribes(ros_env, client, tmp_path):
+    """Joint states arrive but nothing subscribes to command_topic (the velocity controller is not loaded): arming
+    is refused naming the topic, since a controller that came up mid-stream would take its first command
+    mid-motion, a velocity step from rest. Once something subscribes there (here the command monitor), arming
+    succeeds."""
+    fake = Proc([console_script("python"), str(ROOT / "tests" / "ros" / "fake_arm.py"), "--command-topic",
+                 "/elsewhere/commands", "--joint-state-topic", "/fake2/joint_states", "--out",
+                 str(tmp_path / "arm.npz")], ros_env, tmp_path / "fake_arm.log")
+    node = start_node(ros_env, tmp_path, "fluid_twin:=false", "mode:=robot", "command_topic:=/ctl2/commands",
+                      "joint_state_topic:=/fake2/joint_states", "joint_state_timeout:=0.5")
+    monitor = None
+    try:
+        arm = client.service(SetBool, "/sim_node/arm")
+        deadline = time.monotonic() + 30
+        while "no joint states" in (r := client.call(arm, SetBool.Request(data=True))).message:
+            assert time.monotonic() < deadline, r.message
+            time.sleep(0.2)
+        assert not r.success and "nothing subscribes to /ctl2/commands" in r.message, r.message
+        monitor, _ = start_monitor(ros_env, tmp_path, "/ctl2/commands")
+        deadline = time.monotonic() + 30
+        while not (r := client.call(arm, SetBool.Request(data=True))).success:
+            assert time.monotonic() < deadline, r.message
+            time.sleep(0.2)
+        assert r.message.startswith("armed"), r.message
+    finally:
+        assert node.stop() == 0, node.text()
+        fake.stop()
+        if monitor is not None:
+            monitor.stop()
