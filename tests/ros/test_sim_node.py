@@ -37,7 +37,7 @@ from fluidlab_ros.limits import JointLimits  # noqa: E402
 from fluidlab_ros.robot import READY_Q  # noqa: E402
 
 LIM = JointLimits.load("fr3")
-MIXING = "Mixing_dp-h_seed1_small"
+MIXING = "Mixing_dp_seed0_small"
 
 
 def stream_of(monitor: Proc, out) -> tuple[np.ndarray, np.ndarray, dict]:
