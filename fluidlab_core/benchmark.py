@@ -25,6 +25,10 @@ local Ray starts with `--jobs` CPUs (default: all cores), one run per CPU, and e
 cluster: start it with `ray start --head` here and `ray start --address HOST:6379` on the other machines. Each
 machine needs only this package installed. Without Ray, runs go to a pool of `--jobs` processes.
 
+Re-evaluating. `--reevaluate` replays every finished run's trajectory on the engine installed now and appends the
+losses to OUT/reevaluated.jsonl (resumable; delete it to re-measure after another engine change); the table then
+shows each method's loss 'now' beside the recorded one, for a sweep whose runs span engine changes.
+
 Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
 same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
 table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
@@ -172,8 +176,11 @@ def _best_at(curve, axis: int, at: float) -> float:
     return float(np.min(vals)) if vals else float("nan")
 
 
-def table(runs: list[dict], refused: list[dict] | None = None) -> str:
+def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None = None) -> str:
+    """now: {run key: final loss re-evaluated on today's engine} (`reevaluate`); shown after each row whose seeds
+    all have one."""
     ok = [r for r in runs if "final_loss" in r]
+    now = now or {}
     lines = []
     if ok:
         lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
@@ -184,6 +191,9 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
                      "the kernels (the first runs of a sweep compile; later ones load Taichi's cache). 'ms/step': "
                      "wall time per simulated step of the budget, the optimiser's cost beside the physics (DP's "
                      "includes its backward pass).")
+        if now:
+            lines.append("'now': the mean final loss of the same trajectories replayed on today's engine "
+                         "(--reevaluate, reevaluated.jsonl); the recorded one is what the run measured when it ran.")
     for task in dict.fromkeys(r["task"] for r in runs):
         tr = [r for r in ok if r["task"] == task]
         if tr:
@@ -206,9 +216,11 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
                 continue
             f = np.array([r["final_loss"] for r in mr])
             ret = np.array([r["return"] for r in mr])
+            again = [now[r["key"]] for r in mr if r["key"] in now]
+            now_text = f"  now {np.mean(again):.4e}" if again and len(again) == len(mr) else ""
             if m == STILL:
                 lines.append(f"  {'still':<8} {f.mean():>12.4e} {'':<11} {ret.mean():>9.3f} {'':<10} "
-                             f"(the tool kept still: the loss to beat)")
+                             f"(the tool kept still: the loss to beat){now_text}")
                 continue
             flat = [flattened(r["curve"]) for r in mr]
             reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
@@ -216,7 +228,7 @@ def table(runs: list[dict], refused: list[dict] | None = None) -> str:
             lines.append(f"  {m:<8} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
                          f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} "
                          f"{1e3 * np.mean([r['wall'] / r['steps_used'] for r in mr]):>8.1f} {at_equal:>18}"
-                         + (f"  ({len(failed)} failed)" if failed else ""))
+                         + (f"  ({len(failed)} failed)" if failed else "") + now_text)
     for r in refused or []:
         lines.append(f"refused: {r['task']} {r['method']}: {r['why']}")
     return "\n".join(lines)
@@ -470,10 +482,59 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--min-generations", type=int, default=30, help="CMA-ES generations a budget must hold")
     ap.add_argument("--checkpoints", type=int, default=10, help="reference evaluations along each run's budget")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--reevaluate", action="store_true",
+                    help="replay every finished run's trajectory on this engine (OUT/reevaluated.jsonl, resumable; the "
+                    "table then shows each method's loss 'now' beside the recorded one), write the report, run nothing "
+                    "else")
     ap.add_argument("--report-only", action="store_true",
                     help="write the table, Table 2 and the plots from OUT/runs.jsonl (the runs finished so far, e.g. "
                     "of a sweep still running or cut short) and run nothing")
     return ap
+
+
+REEVALUATED = "reevaluated.jsonl"
+
+
+def reevaluate(out: Path, tasks_=None, arch: str = "cpu", threads: int | None = None, log=print) -> dict:
+    """Replay every finished run's trajectory (the still tool's zero actions for its row) on this engine's
+    reference physics, as tests/test_tasks.py replays a shipped one, and append {key, final_loss_now,
+    return_now, recorded_final_loss, date} to OUT/reevaluated.jsonl as each finishes. A sweep's runs may span
+    engine changes that moved a task's physics; these figures put them on one engine. Runs already in the file
+    are skipped (delete it to re-measure after another engine change). Returns {key: record} of the file."""
+    import fluidlab_core
+    from fluidlab_core import tasks
+    from fluidlab_core.trajectory import Trajectory
+
+    out = Path(out)
+    path = out / REEVALUATED
+    done = {r["key"]: r for r in load_runs(path) if "key" in r}
+    todo = [r for r in load_runs(out / "runs.jsonl") if "final_loss" in r and r["key"] not in done
+            and (not tasks_ or r["task"] in tasks_) and (r["method"] == STILL or "trajectory" in r)]
+    log(f"re-evaluating {len(todo)} runs on this engine ({len(done)} already in {path})")
+    if not todo:
+        return done
+    fluidlab_core.init(arch=arch, precision="f32", cpu_threads=threads)
+    built = {}
+    for i, r in enumerate(todo):
+        t0 = time.perf_counter()
+        task = built.get((r["task"], r["size"])) or built.setdefault((r["task"], r["size"]),
+                                                                      tasks.make(r["task"], size=r["size"]))
+        if r["method"] == STILL:
+            result = task.evaluate(np.zeros((task.horizon, task.n_actions)))
+        else:
+            traj_path = out / r["trajectory"]
+            if not traj_path.is_file():
+                log(f"  {r['key']}: no trajectory at {traj_path}; skipped")
+                continue
+            actions, position = task.actions_from_trajectory(Trajectory.load(traj_path))
+            result = task.evaluate(actions, tool_position=position)
+        rec = {"key": r["key"], "final_loss_now": float(result["loss"]), "return_now": float(result["return"]),
+               "recorded_final_loss": r["final_loss"], "date": time.strftime("%Y-%m-%d")}
+        _append(path, rec)
+        done[r["key"]] = rec
+        log(f"  [{i + 1}/{len(todo)}] {r['key']}: {rec['final_loss_now']:.4e} now, {r['final_loss']:.4e} recorded "
+            f"({time.perf_counter() - t0:.0f} s)")
+    return done
 
 
 def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
@@ -489,7 +550,8 @@ def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
 
     rank = {m: i for i, m in enumerate((STILL, *METHODS, *ABLATIONS))}
     records.sort(key=lambda r: (order.get(r["task"], len(order)), rank.get(r["method"], len(rank)), r["seed"]))
-    text = table(records)
+    now = {r["key"]: r["final_loss_now"] for r in load_runs(Path(out) / REEVALUATED) if "key" in r}
+    text = table(records, now=now)
     (Path(out) / "table.txt").write_text(text + "\n")
     (Path(out) / "table2.md").write_text(paper_table(records) + "\n")
     log(text)
@@ -503,7 +565,13 @@ def main(argv=None) -> int:
 
     args = build_parser().parse_args(argv)
     out = Path(args.out or f"bench/results/benchmark_{args.size}")
-    if args.report_only:
+    if args.reevaluate:
+        try:
+            reevaluate(out, args.tasks, args.arch, args.threads)
+        except ValueError as err:
+            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
+            return 2
+    if args.report_only or args.reevaluate:
         try:
             report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
         except ValueError as err:
