@@ -517,8 +517,9 @@ def reevaluate(out: Path, tasks_=None, arch: str = "cpu", threads: int | None = 
     built = {}
     for i, r in enumerate(todo):
         t0 = time.perf_counter()
-        task = built.get((r["task"], r["size"])) or built.setdefault((r["task"], r["size"]),
-                                                                      tasks.make(r["task"], size=r["size"]))
+        if (r["task"], r["size"]) not in built:
+            built[r["task"], r["size"]] = tasks.make(r["task"], size=r["size"])
+        task = built[r["task"], r["size"]]
         if r["method"] == STILL:
             result = task.evaluate(np.zeros((task.horizon, task.n_actions)))
         else:
