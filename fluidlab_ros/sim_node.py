@@ -75,8 +75,8 @@ from fluidlab_ros.mounting import load_mounting
 from fluidlab_ros.schedule import Schedule
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.stopping import stop_ramp
-from fluidlab_ros.stream import (DONE, HANDSHAKE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess, udp_only,
-                                 row_state, rows_for, write_row)
+from fluidlab_ros.stream import (DONE, HANDSHAKE, HEARTBEAT, INDEX, LATE_TICKS, MAX_LATE, T0, RunBuffer, StreamProcess,
+                                 udp_only, row_state, rows_for, write_row)
 from fluidlab_core.trajectory_store import StoreError, TrajectoryStore
 from fluidlab_ros.twin import TwinArm
 from fluidlab_ros import workers
@@ -405,8 +405,9 @@ class SimNode(Node):
                 response.message = (f"cannot arm: no joint states on {self.joint_state_topic} for "
                                     f"{age:.3g} s (timeout {self.joint_state_timeout} s)")
                 return response
-            if self._no_controller():
-                response.success, response.message = False, f"cannot arm: {self._no_controller()}"
+            missing = self._no_controller()
+            if missing:
+                response.success, response.message = False, f"cannot arm: {missing}"
                 return response
             self.armed = True
             response.success, response.message = True, "armed: ~/execute goals with target 'robot' may command the arm"
@@ -613,8 +614,9 @@ class SimNode(Node):
             age = self._joint_state_age()
             if age > self.joint_state_timeout:
                 raise ValueError(f"target 'robot': no joint states on {self.joint_state_topic} for {age:.3g} s")
-            if self._no_controller():
-                raise ValueError(f"target 'robot': {self._no_controller()}")
+            missing = self._no_controller()
+            if missing:
+                raise ValueError(f"target 'robot': {missing}")
         scale = 1.0 if g.speed_scale == 0 else float(g.speed_scale)
         if not (0 < scale <= 1):
             raise ValueError(f"speed_scale must be in (0, 1] (0 means 1), got {g.speed_scale}")
