@@ -408,22 +408,7 @@ class GasSimulator:
         result.grad_sources = self._source_grads()
 
     def _source_grads(self) -> dict:
-        from fluidlab_core.engine.checkpoint import rotation_tangent_grad
-
-        s = self.solver
-        out = {}
-        gp, gR = s.src_p.grad.to_numpy(), s.src_R.grad.to_numpy()
-        gs, gq = s.src_speed.grad.to_numpy(), s.src_q.grad.to_numpy()
-        for i, src in enumerate(s.sources):
-            d = {"position": gp[i].astype(np.float64),
-                 "rotation": rotation_tangent_grad(gR[i].astype(np.float64), src.rotation())}
-            if src.speed is not None:
-                d["speed"] = float(gs[i])
-            for c, name in enumerate(self.spec.scalar_names):
-                if s._src_sets[i][c]:
-                    d[name] = float(gq[i, c])
-            out[src.name] = d
-        return out
+        return self.solver.source_grads()
 
     def set_viscosity(self, viscosity: float):
         """Change the kinematic viscosity ν (m²/s) without rebuilding; refused above the explicit limit

@@ -574,7 +574,7 @@ class Scene:
         if self.gas is not None:
             from fluidlab_core.engine.gas_coupling import GasParticleCoupling
 
-            gas = self._gas_solver(requires_grad=False)
+            gas = self._gas_solver(requires_grad=requires_grad)
             names = self.gas.drag_bodies
             rows = None
             if self.gas.particle_drag > 0:

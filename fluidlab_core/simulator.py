@@ -206,7 +206,9 @@ class Simulator:
         loss: a `fluidlab_core.losses.Loss`, evaluated after the steps it names.
         grad: False runs the fast forward solver; True runs the differentiable solver (build with
             requires_grad=True) with gradient checkpointing and returns the gradients with respect to every
-            action, the initial tool poses and the initial particle state (see rollout.RolloutResult).
+            action, the initial tool poses and the initial particle state (see rollout.RolloutResult); in a scene
+            with gas (attach_gas) the gas steps with the particles and is differentiated with them, and the
+            gradients with respect to its start come back too (engine/gas_coupling.py).
         segment_steps: steps per checkpoint segment (default: as long as the buffer chosen at build allows, see
             checkpoint.plan_segments).
         checkpoint_dir: keep segment checkpoints in a private folder under this directory instead of in memory.
@@ -230,10 +232,6 @@ class Simulator:
                                 f"{type(term).__name__}")
         twists = self._action_sequence(actions)
         if grad:
-            if self.gas is not None:
-                raise NotImplementedError("gradients through the coupling of gas and particles are not implemented: "
-                                          "rollout(grad=True) runs on scenes of particles alone or gas alone "
-                                          "(engine/gas_coupling.py)")
             if self.diff is None:
                 raise RuntimeError("this simulator was built without gradients: build(requires_grad=True) to "
                                    "call rollout(..., grad=True)")
@@ -241,11 +239,20 @@ class Simulator:
                 raise ValueError("rollout(grad=True) takes one loss over the rollout's own steps (no terms, "
                                  "step_offset or horizon)")
             start = self.step_count
+            coupled = None
+            if self.gas is not None:
+                if self.model.has_emitters:
+                    raise NotImplementedError("rollout(grad=True) of a scene with gas, particles and emitters: the "
+                                              "gas's coupling to emitted particles has no gradient yet")
+                from fluidlab_core.engine.gas_coupling import CoupledGas
+
+                coupled = CoupledGas(self.gas_coupling, self.diff.state, self.dt, start)
             on, blocked = self._emission_plan(twists, emit_on) if self.model.has_emitters else (None, {})
             with self._first_run("grad", "the differentiable solver's kernels (forward and backward)"):
                 result, final = rollout_with_grad(
                     self.diff, self.get_state(), twists, loss, True, segment_steps, checkpoint_dir, progress,
-                    on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step), emit_on=on)
+                    on_nonfinite=lambda fields, p, step: self._raise_nonfinite(fields, p, start + step), emit_on=on,
+                    coupled=coupled)
             self.set_state(final)
             if self.model.has_emitters:
                 result.stats["emitters"] = self.emitter_report(blocked, start)

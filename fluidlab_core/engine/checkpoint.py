@@ -100,13 +100,16 @@ def _default_nonfinite(fields, particle, step):
 
 
 def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool = True, segment_steps=None,
-                      checkpoint_dir=None, progress=None, on_nonfinite=None, emit_on=None):
+                      checkpoint_dir=None, progress=None, on_nonfinite=None, emit_on=None, coupled=None):
     """Run len(twists) steps from `start` on the differentiable solver (see the module docstring).
 
     twists: (N, n_tools, 6) masked tool twists, clipped here to the tools' workspaces; emit_on: (N, n_emitters)
     bools, the emitters switched on per step (None: always on). progress(phase, done,
     total) is called once per step with phase "forward", "recompute" or "backward". on_nonfinite(fields,
-    particle, step) raises the caller's error for a NaN state. Returns (RolloutResult, the final State)."""
+    particle, step) raises the caller's error for a NaN state. coupled: the gas of a scene with gas and particles
+    (gas_coupling.CoupledGas), stepped after every step and differentiated with it; its start state is the gas's
+    current state, and the gradients with respect to it come back in result.grad_gas_*. Returns (RolloutResult,
+    the final State)."""
     model = solver.model
     n_steps, sub, dt = len(twists), model.substeps, model.step_dt
     K = plan_segments(n_steps, solver.capacity_steps, segment_steps)
@@ -116,13 +119,16 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
     applied, clipped_dims = tools.plan(model.tool_specs, start.tool_position, twists, dt, sub)
     # what the backward reads is kept only where the backward follows before the buffer is run again
     stepper = rollout.SegmentStepper(solver, K, keep=lambda b: grad and b == n_seg - 1,
-                                     on_nonfinite=on_nonfinite or _default_nonfinite)
+                                     on_nonfinite=on_nonfinite or _default_nonfinite,
+                                     after_step=None if coupled is None else coupled.after_step)
 
     def on_block(b, block):
         if b > 0:
             solver.state.copy_slot(K * sub, 0)
         if grad:
             store.put(b, solver.state.read(0))
+            if coupled is not None:
+                coupled.segment_start(b)
 
     # the loss gradients of the last segment's steps, taken when its forward reads the state for the loss value,
     # so that its backward need not read the state again (as long as they fit LOSS_GRAD_CACHE_BYTES)
@@ -149,7 +155,7 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
         if grad:
             stepper.keep = lambda b: True  # the recompute pass keeps what each segment's backward reads
             _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads,
-                      emit_on)
+                      emit_on, coupled)
             result.stats["backward_seconds"] = time.perf_counter() - t0 - forward_seconds
             result.stats["checkpoint_bytes"] = store.nbytes
         return result, final
@@ -158,7 +164,7 @@ def rollout_with_grad(solver, start: State, twists: np.ndarray, loss, grad: bool
 
 
 def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, store, progress, loss_grads,
-              emit_on=None):
+              emit_on=None, coupled=None):
     model = solver.model
     if model.has_emitters:
         model.emitters.clear_grads()
@@ -172,11 +178,15 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
         if progress:
             progress(phase, done, n_steps)
 
+    if coupled is not None:
+        coupled.begin_backward()
     carry = None
     for seg in reversed(range(n_seg)):
         steps = range(seg * K, min(n_steps, (seg + 1) * K))
         if seg != n_seg - 1:  # the last segment is still in the buffer from the forward pass
             state.write(0, store.get(seg))
+            if coupled is not None:
+                coupled.restore(seg)
             stepper.run_block(steps, applied[steps.start:steps.stop],
                               None if emit_on is None else emit_on[steps.start:steps.stop], tick, "recompute", seg)
         solver.clear_grads()
@@ -199,6 +209,8 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
         for j in reversed(range(len(steps))):
             g = steps[j]
             s0, s1 = j * sub, (j + 1) * sub
+            if coupled is not None:  # the gas's step and drag came after the MPM substeps
+                coupled.backward_step(g, s0, s1, applied[g])
             for i in reversed(range(sub)):
                 solver.substep_grad(s0 + i)
             if n_tools and clipped_dims[g].any():
@@ -243,6 +255,8 @@ def _backward(solver, stepper, loss, result, applied, clipped_dims, n_seg, K, st
         R0 = np.stack([s.rotation() for s in model.emitter_specs])
         result.grad_emitter_position = gp
         result.grad_emitter_rotation = rotation_tangent_grad(gR, R0)
+    if coupled is not None:
+        coupled.finish(result)
 
 
 def _raise_nonfinite(fields, g: int, dt: float):

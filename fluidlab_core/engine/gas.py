@@ -875,10 +875,12 @@ class GasSolver:
         for I in ti.grouped(gq):
             self.Q[S2].grad[I] += gq[I]
 
-    def backward_step(self, dt: float, step: int, carry_v, carry_q, particles=None):
+    def backward_step(self, dt: float, step: int, carry_v, carry_q, particles=None, particles_grad=None):
         """The gradient of one gas step. The state at the step's start must be in S0 and the tools set; carry_v
         (3 face fields) and carry_q hold the gradient with respect to the step's result and are replaced by the
-        gradient with respect to its start. Source and tool gradients accumulate in their fields' .grad."""
+        gradient with respect to its start. Source and tool gradients accumulate in their fields' .grad.
+        particles(): rasterises the particles as in the forward step; particles_grad(): called once solid_v.grad
+        holds the gradient with respect to the solid cells' velocities (coupling, engine/gas_coupling.py)."""
         self.prepare_boundaries(particles)
         self.forward_stages(dt)
         self.clear_grads()
@@ -900,6 +902,8 @@ class GasSolver:
         else:
             self.advect_sl.grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
+        if particles_grad is not None:  # every stage that reads solid_v (sources, override) is behind us
+            particles_grad()
         if self.sources:
             self.source_weights.grad()
             self.source_frames.grad()
@@ -921,6 +925,25 @@ class GasSolver:
         nx, ny, nz = self.shape
         return ([ti.field(ti.f64, shape=s) for s in self.face_shapes],
                 ti.field(ti.f64, shape=(self.n_q, nx, ny, nz)))
+
+    def source_grads(self) -> dict:
+        """{source name: {"position" (3,), "rotation" (3,) tangent (R ← exp([θ]×) R), "speed", <scalar>}}: the
+        gradients accumulated in the sources' fields since clear_param_grads, in each source's parent frame."""
+        from fluidlab_core.engine.checkpoint import rotation_tangent_grad
+
+        out = {}
+        gp, gR = self.src_p.grad.to_numpy(), self.src_R.grad.to_numpy()
+        gs, gq = self.src_speed.grad.to_numpy(), self.src_q.grad.to_numpy()
+        for i, src in enumerate(self.sources):
+            d = {"position": gp[i].astype(np.float64),
+                 "rotation": rotation_tangent_grad(gR[i].astype(np.float64), src.rotation())}
+            if src.speed is not None:
+                d["speed"] = float(gs[i])
+            for c, name in enumerate(self.spec.scalar_names):
+                if self._src_sets[i][c]:
+                    d[name] = float(gq[i, c])
+            out[src.name] = d
+        return out
 
     def tool_grads(self):
         """(dL/dp, dL/dR, dL/dv, dL/dω) of this step's tool fields, (T, 3), (T, 3, 3), (T, 3), (T, 3)."""

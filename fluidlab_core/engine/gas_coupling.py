@@ -6,15 +6,32 @@ Operator splitting, once per scene step (after the MPM step of dt, before the ga
                       ū_c = Σ V_p v_p / Σ V_p over the particles the gas does not drag; cells with φ_c ≥ ½ are
                       solid for the gas and move at ū_c (the gas flows round the liquid and is pushed by it, as
                       round a tool); dragged (light) particles ride in the gas and do not block it
-    gas → particles   v_p ← v_p + (1 − exp(−k Δt)) (u_gas(x_p) − v_p) for the particles of the bodies the user
-                      named, with u_gas the trilinear interpolation of the face velocities and k (1/s) the drag
-                      rate, i.e. Stokes-like drag relaxing a particle to the local air speed over 1/k seconds
+    gas → particles   v_p ← v_p + a (u_gas(x_p) − v_p), a = 1 − exp(−k Δt), for the particles of the bodies the
+                      user named, with u_gas the trilinear interpolation of the face velocities and k (1/s) the
+                      drag rate, i.e. Stokes-like drag relaxing a particle to the local air speed over 1/k seconds
 
 What is and is not conserved: the first is a boundary condition (the gas's volume is kept by its projection; the
 particles lose nothing); the second moves particle momentum towards the gas's without giving the gas the
 reaction, so momentum is not conserved by the pair (the gas is treated as an external wind on light particles,
-whose momentum is small beside the air's driving it). Neither direction is differentiated yet: a rollout with
-gradients refuses a scene that couples gas and particles (simulator.py).
+whose momentum is small beside the air's driving it).
+
+Gradients (CoupledGas, driven by checkpoint.rollout_with_grad): a scene step is the MPM substeps (slot s0 → s1
+of the differentiable solver's buffer), then the gas substeps with the particles of slot s1 as solids, then the
+drag on slot s1 in place. Going back through step j, the gradient held by slot s1 is that of the state after the
+drag; in reverse order:
+
+    drag          v̄_p ← (1 − a) v̄_p;  x̄_p += a (∂u_gas/∂x)ᵀ v̄_p;  ū_gas += a Wᵀ v̄_p   (W: the interpolation
+                  weights; Taichi's autodiff of `drag_wind`, which reads the gas after the step)
+    gas substeps  GasSolver.backward_step, each from its start state (kept on the host by the forward or by the
+                  segment's recompute), with the particles of slot s1 rasterised again; the gradient of the solid
+                  cells' velocities goes to the particles that made them: v̄_p += (V_p / Σ_c V) ∂L/∂ū_c
+    tools         the gas's gradients with respect to the tools' pose (end of step, slot s1) and twist go into
+                  the MPM state's tool gradients, so the MPM backward carries them on
+
+Which cell a particle falls in, and whether a cell is solid (φ_c ≥ ½), are piecewise constant in the positions:
+their derivative is zero almost everywhere, and the gradient carries none (a finite difference across a cell
+boundary sees a jump instead). The dragged particles' own cells are not solid, so the two directions touch
+disjoint particles and the in-place drag leaves what the solids' backward reads unchanged.
 """
 import numpy as np
 import taichi as ti
@@ -22,7 +39,8 @@ import taichi as ti
 
 @ti.data_oriented
 class GasParticleCoupling:
-    """The two coupling kernels between a StateBuffer's slot 0 (the fast solver's state) and a GasSolver."""
+    """The coupling kernels between slot s of a StateBuffer (slot 0 of the fast solver's state; any slot of the
+    differentiable solver's buffer) and a GasSolver."""
 
     def __init__(self, gas, model, drag_rows: np.ndarray | None, drag_rate: float):
         self.gas = gas
@@ -35,9 +53,11 @@ class GasParticleCoupling:
             mask[np.asarray(drag_rows)] = 1
         self.drag.from_numpy(mask)
         self.cell_volume = gas.dx ** 3
+        # a · u_gas(x_p) of the dragged particles (m/s), for the drag's gradient (autodiff of drag_wind)
+        self.wind = ti.Vector.field(3, model.real, shape=max(n, 1), needs_grad=gas.needs_grad)
 
     @ti.kernel
-    def rasterize(self, x: ti.template(), v: ti.template()):
+    def rasterize(self, x: ti.template(), v: ti.template(), s: ti.i32):
         """gas.cell_m = particle volume share per gas cell, gas.cell_mv = their mean velocity."""
         g = self.gas
         shape = ti.static(g.shape)
@@ -45,33 +65,177 @@ class GasParticleCoupling:
             g.cell_m[I] = 0.0
             g.cell_mv[I] = ti.Vector([0.0, 0.0, 0.0])
         for p in range(self.model.n_particles):
-            c = ti.cast(ti.floor((x[0, p] - ti.Vector(g._lower)) / g.dx), ti.i32)
+            c = self._cell_of(x[s, p])
             inside = 0 <= c[0] < shape[0] and 0 <= c[1] < shape[1] and 0 <= c[2] < shape[2]
-            c = ti.min(ti.max(c, 0), ti.Vector([shape[0] - 1, shape[1] - 1, shape[2] - 1]))
             if inside and self.drag[p] == 0:  # the particles the gas drags ride in it and do not block it
                 vol = self.model.rest_volume[p]
                 g.cell_m[c] += vol
-                g.cell_mv[c] += vol * v[0, p]
+                g.cell_mv[c] += vol * v[s, p]
         for I in ti.grouped(g.cell_m):
             m = g.cell_m[I]
             if m > 0.0:
                 g.cell_mv[I] = g.cell_mv[I] / m
             g.cell_m[I] = m / self.cell_volume
 
+    @ti.func
+    def _cell_of(self, xp):
+        """The gas cell holding position xp (may lie outside the grid)."""
+        return ti.cast(ti.floor((xp - ti.Vector(self.gas._lower)) / self.gas.dx), ti.i32)
+
     @ti.kernel
-    def apply_drag(self, x: ti.template(), v: ti.template(), dt: ti.f64):
+    def apply_drag(self, x: ti.template(), v: ti.template(), s: ti.i32, dt: ti.f64):
         g = self.gas
         a = 1.0 - ti.exp(-self.drag_rate * dt)
         for p in range(self.model.n_particles):
             if self.drag[p] != 0:
-                u = g._velocity_at(0, x[0, p])
-                v[0, p] = v[0, p] + a * (u - v[0, p])
+                u = g._velocity_at(0, x[s, p])
+                v[s, p] = v[s, p] + a * (u - v[s, p])
 
-    def particles_to_gas(self, state):
-        """Before a gas step: the particle cells become moving solids (with particles_block)."""
-        self.rasterize(state.x, state.v)
+    # --- gradients -----------------------------------------------------------------------------------------------
+    @ti.kernel
+    def drag_wind(self, x: ti.template(), s: ti.i32, a: ti.f64):
+        """wind_p = a u_gas(x_p) for the dragged particles (its reverse is the drag's gradient in x and u_gas)."""
+        for p in range(self.model.n_particles):
+            if self.drag[p] != 0:
+                self.wind[p] = a * self.gas._velocity_at(0, x[s, p])
+
+    @ti.kernel
+    def drag_seed(self, v: ti.template(), s: ti.i32, a: ti.f64):
+        """wind.grad = v̄ and v̄ ← (1 − a) v̄ on the dragged particles of slot s (zero wind.grad elsewhere)."""
+        for p in range(self.model.n_particles):
+            gv = ti.Vector([0.0, 0.0, 0.0], dt=self.model.real)
+            if self.drag[p] != 0:
+                gv = v.grad[s, p]
+                v.grad[s, p] = (1.0 - a) * gv
+            self.wind.grad[p] = gv
+
+    @ti.kernel
+    def add_velocity_grad(self, c0: ti.template(), c1: ti.template(), c2: ti.template()):
+        """The carried gas gradient c += ∂L/∂u of the gas's stage S0 (what the drag read)."""
+        g = self.gas
+        for d in ti.static(range(3)):
+            c = ti.static((c0, c1, c2)[d])
+            for I in ti.grouped(c):
+                c[I] += ti.cast(g.V[0][d].grad[I], ti.f64)
+
+    @ti.kernel
+    def solid_grad(self, x: ti.template(), v: ti.template(), s: ti.i32):
+        """v̄_p += (V_p / Σ_c V) ∂L/∂ū_c for the particles that make the particle-solid cell c (particle_solids set
+        ū_c = cell_mv, the volume-weighted mean of their velocities)."""
+        g = self.gas
+        shape = ti.static(g.shape)
+        for p in range(self.model.n_particles):
+            c = self._cell_of(x[s, p])
+            inside = 0 <= c[0] < shape[0] and 0 <= c[1] < shape[1] and 0 <= c[2] < shape[2]
+            if inside and self.drag[p] == 0:
+                if g.solid[c] == 3:
+                    share = self.model.rest_volume[p] / (g.cell_m[c] * self.cell_volume)
+                    v.grad[s, p] = v.grad[s, p] + share * g.solid_v.grad[c]
+
+    # --- the scene step's two halves (fast and differentiable solvers alike) -----------------------------------
+    def particles_to_gas(self, state, s: int = 0):
+        """Before a gas step: the particle cells of slot s become moving solids (with particles_block)."""
+        self.rasterize(state.x, state.v, s)
         self.gas.particle_solids(0.5)
 
-    def gas_to_particles(self, state, dt: float):
+    def gas_to_particles(self, state, dt: float, s: int = 0):
         if self.drag_rate > 0.0:
-            self.apply_drag(state.x, state.v, dt)
+            self.apply_drag(state.x, state.v, s, dt)
+
+
+class CoupledGas:
+    """The gas of a coupled scene inside a checkpointed gradient rollout (checkpoint.rollout_with_grad): its step
+    after each MPM step, its state at each segment's start, and the backward of each step (module docstring).
+
+    coupling: the scene's GasParticleCoupling (its gas built with gradients); state: the differentiable solver's
+    StateBuffer; dt: the scene step (s); first_step: the scene's step count at the rollout's start."""
+
+    def __init__(self, coupling: GasParticleCoupling, state, dt: float, first_step: int):
+        self.cp, self.gas, self.state = coupling, coupling.gas, state
+        self.dt = float(dt)
+        self.substeps = int(self.gas.spec.substeps)
+        self.sub_dt = self.dt / self.substeps
+        self.first_step = int(first_step)
+        self.segment_starts: dict = {}  # segment index → gas state at its start
+        self.kept: dict = {}  # step → gas states at each gas substep's start, and after the step (what the drag read)
+        self.carry_v, self.carry_q = None, None
+        self.tool_grad = None
+
+    def _set_tools(self, slot: int, twist: np.ndarray):
+        if self.gas.n_tools:
+            p, R = self.state.read_tools(slot)
+            twist = np.asarray(twist, dtype=np.float64)
+            self.gas.set_tools(p, R, twist[:, :3], twist[:, 3:])
+
+    def _particles(self, slot: int):
+        return (lambda: self.cp.particles_to_gas(self.state, slot)) if self.gas.spec.particles_block else None
+
+    # --- forward -------------------------------------------------------------------------------------------------
+    def segment_start(self, b: int):
+        self.segment_starts[b] = self.gas.read_state()
+
+    def restore(self, b: int):
+        self.gas.write_state(self.segment_starts[b])
+
+    def after_step(self, g: int, slot: int, twist: np.ndarray, keep: bool):
+        """Step g's gas (the MPM state of step g's end in `slot`), keeping its states for the backward if `keep`."""
+        self._set_tools(slot, twist)
+        kept = []
+        for j in range(self.substeps):
+            if keep:
+                kept.append(self.gas.read_state())
+            self.gas.step(self.sub_dt, (self.first_step + g) * self.substeps + j, particles=self._particles(slot))
+        if keep:
+            kept.append(self.gas.read_state())
+            self.kept[g] = kept
+        self.cp.gas_to_particles(self.state, self.dt, slot)
+
+    # --- backward ------------------------------------------------------------------------------------------------
+    def begin_backward(self):
+        self.final = self.gas.read_state()
+        self.carry_v, self.carry_q = self.gas.carry_fields()
+        for f in (*self.carry_v, self.carry_q):
+            f.fill(0)
+        self.gas.clear_param_grads()
+
+    def backward_step(self, g: int, s0: int, s1: int, twist: np.ndarray):
+        """Step g's gas and drag, backward: slot s1's gradient becomes that of the state before the gas's step,
+        the carried gas gradient that of the gas before it, and the tools' gradients go into slots s0 … s1."""
+        from fluidlab_core.engine.checkpoint import NonFiniteGradientError
+
+        gas, cp = self.gas, self.cp
+        kept = self.kept.pop(g)
+        if cp.drag_rate > 0.0:
+            a = 1.0 - np.exp(-cp.drag_rate * self.dt)
+            gas.write_state(kept[-1])
+            gas.clear_grads()
+            cp.drag_seed(self.state.v, s1, a)
+            cp.drag_wind.grad(self.state.x, s1, a)
+            cp.add_velocity_grad(*self.carry_v)
+        self._set_tools(s1, twist)
+        n_t = gas.n_tools
+        gp, gR, gv, gw = np.zeros((n_t, 3)), np.zeros((n_t, 3, 3)), np.zeros((n_t, 3)), np.zeros((n_t, 3))
+        solid_grad = (lambda: cp.solid_grad(self.state.x, self.state.v, s1)) if gas.spec.particles_block else None
+        for j in reversed(range(self.substeps)):
+            gas.write_state(kept[j])
+            gas.backward_step(self.sub_dt, (self.first_step + g) * self.substeps + j, self.carry_v, self.carry_q,
+                              particles=self._particles(s1), particles_grad=solid_grad)
+            if n_t:
+                dp, dR, dv, dw = gas.tool_grads()
+                gp, gR, gv, gw = gp + dp, gR + dR, gv + dv, gw + dw
+        flags = gas.carry_finite(*self.carry_v, self.carry_q)
+        bad = [name for bit, name in ((1, "velocity"), (2, "scalars")) if flags & bit]
+        if bad:
+            raise NonFiniteGradientError(f"the gas gradient ({', '.join(bad)}) became NaN or infinite going back "
+                                         f"through step {self.first_step + g + 1}")
+        if n_t:
+            self.state.add_steps_grad([s1], [{"tool_position": gp, "tool_rotation": gR}])
+            self.state.add_twist_grad(s0, np.concatenate([gv, gw], axis=1))
+
+    def finish(self, result):
+        """The gradients with respect to the gas's start (result.grad_gas_velocity, grad_gas_scalars) and its
+        sources (grad_gas_sources); the gas back in its final state."""
+        result.grad_gas_velocity = tuple(f.to_numpy() for f in self.carry_v)
+        result.grad_gas_scalars = self.carry_q.to_numpy()
+        result.grad_gas_sources = self.gas.source_grads()
+        self.gas.write_state(self.final)

@@ -48,6 +48,11 @@ class RolloutResult:
     grad_positions: np.ndarray | None = None
     grad_emitter_position: np.ndarray | None = None  # (n_emitters, 3) dL/d nozzle origin in its parent frame
     grad_emitter_rotation: np.ndarray | None = None  # (n_emitters, 3) dL/dθ for R ← exp([θ]×) R, parent frame
+    # a scene with gas and particles: dL/d of the gas's start (face velocities (3 arrays), scalars
+    # (n_q, nx, ny, nz)) and of its sources' parameters ({name: {...}} as GasRolloutResult.grad_sources)
+    grad_gas_velocity: tuple | None = None
+    grad_gas_scalars: np.ndarray | None = None
+    grad_gas_sources: dict | None = None
     stats: dict = field(default_factory=dict)  # segments, segment_steps, checkpoint bytes, seconds
     terms: dict = field(default_factory=dict)
 
@@ -94,10 +99,13 @@ class FastStepper:
 
 class SegmentStepper:
     """The differentiable solver, one checkpoint segment of `block_steps` steps per block, starting each from
-    slot 0 of its buffer. `keep(block_index)`: whether the segment keeps the stores its backward reads."""
+    slot 0 of its buffer. `keep(block_index)`: whether the segment keeps the stores its backward reads.
+    `after_step(g, slot, twist, keep)`: what else step g does once its end state is in `slot` (the gas of a
+    coupled scene, gas_coupling.CoupledGas)."""
 
-    def __init__(self, solver, block_steps: int, keep=lambda b: True, on_nonfinite=None):
+    def __init__(self, solver, block_steps: int, keep=lambda b: True, on_nonfinite=None, after_step=None):
         self.solver, self.block_steps, self.keep, self.on_nonfinite = solver, int(block_steps), keep, on_nonfinite
+        self.after_step = after_step
         self.dt = solver.model.step_dt
         n = solver.n_particles
         itemsize = np.dtype(solver.np_real).itemsize
@@ -114,10 +122,13 @@ class SegmentStepper:
             counts, times, _ = schedule(model.emitter_specs, *state.read_emission(0), on, sub, model.dt)
             state.write_emission(0, counts, times)
             self.counts = counts
-        substep = self.solver.substep if self.keep(b) else self.solver.substep_no_store
+        keep = self.keep(b)
+        substep = self.solver.substep if keep else self.solver.substep_no_store
         for j, g in enumerate(block):
             for i in range(sub):
                 substep(j * sub + i)
+            if self.after_step is not None:
+                self.after_step(g, (j + 1) * sub, applied[j], keep)
             if progress:
                 progress(phase, g + 1, None)
 

@@ -383,6 +383,20 @@ class StateBuffer:
             self._write_twists(np.ascontiguousarray(twists, dtype=self.np_pose_real), substeps)
 
     @ti.kernel
+    def _add_twist_grad(self, s: ti.i32, g: ti.types.ndarray()):
+        ti.loop_config(serialize=True)
+        for k in range(self.n_tools):
+            for i in ti.static(range(3)):
+                self.tool_v.grad[k, s][i] += g[k, i]
+                self.tool_w.grad[k, s][i] += g[k, 3 + i]
+
+    def add_twist_grad(self, s: int, grad: np.ndarray):
+        """Add (n_tools, 6) to the gradient of the twist held over substep s (what else the step's twist moved:
+        the gas of a coupled scene)."""
+        if self.n_tools:
+            self._add_twist_grad(s, np.ascontiguousarray(grad, dtype=self.np_pose_real))
+
+    @ti.kernel
     def _twist_grads(self, substeps: ti.i32, out: ti.types.ndarray()):
         ti.loop_config(serialize=True)
         for j, k in ti.ndrange(out.shape[0], self.n_tools):
