@@ -156,7 +156,10 @@ def udp_only():
     os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
 
 
-def handshake(publishers: list, send_zero, timeout: float) -> str:
+ACK_POLL = 0.05  # s: the handshake looks at the stop request this often while it waits for acknowledgements
+
+
+def handshake(publishers: list, send_zero, timeout: float, stopped=None) -> str:
     """Make sure every subscriber hears a plan from its first command: '' once it holds, or why not.
 
     publishers: (publisher, topic, expected) for each topic the plan goes to, where expected is how many
@@ -168,22 +171,36 @@ def handshake(publishers: list, send_zero, timeout: float) -> str:
     matched `expected` subscriptions (the writer's side), then send one zero command (the arm is at rest
     before any plan, so a zero changes nothing) and wait until every matched subscriber acknowledged it (the
     reader's side: a subscriber acknowledges only a writer it has matched). Then the plan starts. Typically
-    5 ms when nothing is new, up to seconds (DDS discovery) after a new process or subscriber."""
+    5 ms when nothing is new, up to seconds (DDS discovery) after a new process or subscriber.
+
+    stopped(): the stop request's reason, or '' (polled every few ms, and every ACK_POLL s while waiting for the
+    acknowledgements): a stop (a cancel, ~/stop, a disarm) during the wait ends it at once with that reason, having
+    sent nothing, or the zero alone."""
     from rclpy.duration import Duration
 
+    stopped = stopped or (lambda: "")
     deadline = time.monotonic() + timeout
     for pub, topic, expected in publishers:
         while pub.get_subscription_count() < expected:
+            if stopped():
+                return stopped()
             if time.monotonic() > deadline:
                 return (f"the command stream's publisher on {topic} matched {pub.get_subscription_count()} of the "
                         f"{expected} subscribers the node's publisher has within {timeout:g} s; nothing was sent")
             time.sleep(0.002)
+    if stopped():
+        return stopped()
     send_zero()
     for pub, topic, _ in publishers:
-        left = max(0.0, deadline - time.monotonic())
-        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
-            return (f"the subscribers of {topic} did not acknowledge the stream's opening zero command within "
-                    f"{timeout:g} s; nothing else was sent (the arm stays at rest)")
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0.0:
+                return (f"the subscribers of {topic} did not acknowledge the stream's opening zero command within "
+                        f"{timeout:g} s; nothing else was sent (the arm stays at rest)")
+            if pub.wait_for_all_acked(Duration(nanoseconds=int(min(left, ACK_POLL) * 1e9))):
+                break
+            if stopped():
+                return stopped()
     return ""
 
 
@@ -246,12 +263,12 @@ def stream_process(config: dict, jobs, results):
         if to_robot and pub_ctl is not None:
             pub_ctl.publish(msg)
 
-    def shake(job: dict) -> str:
+    def shake(job: dict, stopped) -> str:
         pubs = [(pub, config["commands_topic"], int(job["subscribers"]["commands"]))]
         if job["to_robot"] and pub_ctl is not None:
             pubs.append((pub_ctl, config["controller_topic"], int(job["subscribers"]["controller"])))
         return handshake(pubs, lambda: publish(np.zeros(limits.dof), np.asarray(job["controller_order"]),
-                                               bool(job["to_robot"])), float(job["handshake_timeout"]))
+                                               bool(job["to_robot"])), float(job["handshake_timeout"]), stopped)
 
     results.put({"kind": "ready", "pid": os.getpid(), "realtime": rt})
     parent = mp.parent_process()
@@ -288,7 +305,7 @@ def _realtime(priority: int) -> str:
 
 
 def run(job: dict, limits, publish, measured: dict, shake) -> dict:
-    """Stream one verified plan: after the handshake (shake(job), see handshake()), command k at t0 + k T
+    """Stream one verified plan: after the handshake (shake(job, stopped), see handshake()), command k at t0 + k T
     (Schedule), each checked by the twin arm; a stop request, a tick later than late_tick_limit, lost joint
     states (robot mode) or a reflex end it, with a jerk-limited ramp to rest unless the (twin) arm already
     stopped."""
@@ -334,7 +351,7 @@ def run(job: dict, limits, publish, measured: dict, shake) -> dict:
         return cmds[k] + corr
 
     t_shake = time.monotonic()
-    problem = shake(job)
+    problem = shake(job, buf.stop_reason)  # a stop while it waits ends the plan before its first command
     buf.floats[HANDSHAKE] = time.monotonic() - t_shake
     if problem:
         buf.floats[T0] = time.monotonic()

@@ -65,3 +65,26 @@ def test_an_unacknowledged_zero_is_reported_and_is_all_that_was_sent():
     assert sent == [0]
     assert "did not acknowledge the stream's opening zero command within 0.3 s" in problem, problem
     assert "the arm stays at rest" in problem
+
+
+def test_a_stop_during_the_wait_ends_it_at_once_with_the_stop_reason():
+    """A cancel (or ~/stop, a disarm) while the handshake waits ends it within a poll, with the stop's reason as
+    the plan's outcome (sim_node then cancels the goal): nothing sent while matching, the zero alone after it."""
+    asked = {"at": None}
+
+    def stopped():
+        return "cancelled" if asked["at"] is not None and time.monotonic() >= asked["at"] else ""
+
+    sent = []
+    asked["at"] = time.monotonic() + 0.1
+    t = time.monotonic()
+    problem = handshake([(FakePublisher([], final=0), "/sim_node/commands", 1)], lambda: sent.append(0), timeout=5.0,
+                        stopped=stopped)
+    assert problem == "cancelled" and not sent
+    assert time.monotonic() - t < 0.5, "the stop must end the wait for subscribers within a poll"
+    asked["at"] = time.monotonic() + 0.1
+    t = time.monotonic()
+    problem = handshake([(FakePublisher([], final=1, every=1e-6, ack_after=None), "/sim_node/commands", 1)],
+                        lambda: sent.append(0), timeout=5.0, stopped=stopped)
+    assert problem == "cancelled" and sent == [0]
+    assert time.monotonic() - t < 0.5, "the stop must end the wait for acknowledgements within a poll"
