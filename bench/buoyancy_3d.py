@@ -53,7 +53,6 @@ def main():
     from fluidlab_core import materials as M
     from fluidlab_core.apps import validation
     from fluidlab_core.engine import constitutive
-    from fluidlab_core.shapes import Box
 
     @constitutive.register("liquid_no_tension", params=("lam",), needs_svd=False, fluid=True)
     @ti.func
@@ -79,26 +78,14 @@ def main():
         water = cls(f"water_{args.liquid}", density=M.WATER.density,
                     bulk_modulus=M.WATER.bulk_modulus * args.bulk_factor)
     kw = {"contact_fill": args.contact_fill} if "contact_fill" in inspect.signature(fl.Scene).parameters else {}
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=args.res, dt=2e-3, substeps=1, **kw)
-    c = width / 2
-    if args.drop is not None:
-        bottom = level + args.drop
-        boxes = [((0, 0, 0), (width, width, level))]
-    else:
-        bottom = level - b * rho / M.WATER.density + args.lift
-        lo_c, hi_c = c - b / 2, c + b / 2
-        boxes = [((0, 0, 0), (width, width, bottom)), ((0, 0, bottom), (lo_c, width, level)),
-                 ((hi_c, 0, bottom), (width, width, level)), ((lo_c, 0, bottom), (hi_c, lo_c, level)),
-                 ((lo_c, hi_c, bottom), (hi_c, width, level))]
-    for lo, hi in boxes:
-        scene.add_particles(Box(lo, hi), water)
     rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor
     body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
         common.FLOAT_FOAM if args.body == "foam" else \
         M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
-    scene.add_particles(Box((c - b / 2, c - b / 2, bottom), (c + b / 2, c + b / 2, bottom + b)), body, name="cube")
-    scene.substeps = int(round(scene.stable_substeps() * args.substep_factor))
-    sim = scene.build()
+    # the scene of the physics test's floating cube (apps/validation.py), here with the bench's options
+    sim, scene = validation.floating_cube_sim(args.res, body, water, drop=args.drop, width=width, level=level,
+                                              side=b, lift=args.lift, substep_factor=args.substep_factor, **kw)
+    c = width / 2
     dx, s = width / args.res, scene.particle_spacing
     waters = [h for h in sim.handles if h != "cube"]
     t0, rows, series = time.time(), [], []

@@ -189,20 +189,33 @@ def submerged(x_liquid, x_body, axis, side: float, dx: float, spacing: float):
     return float((surface - lowest_face) / side), float((x_body[:, 2] < surface).mean()), surface
 
 
-def floating_cube_sim(res: int, body, liquid, drop: float = 0.01, width: float = 0.12, level: float = 0.06,
-                      side: float = 0.04):
+def floating_cube_sim(res: int, body, liquid, drop: float | None = 0.01, width: float = 0.12, level: float = 0.06,
+                      side: float = 0.04, lift: float = 0.0, substep_factor: float = 1.0, **scene_options):
     """(simulator, scene) of floating_cube's set-up: `level` of `liquid` in a closed tank `width` wide and 0.12 m
     tall, `res` cells across, a cube of `side` of material `body` centred over it with its bottom `drop` above
-    the surface; particles named "water" and "cube"; the stable substep count."""
+    the surface, or (drop None) started at Archimedes' depth + `lift` with the liquid carved round it; particles
+    named "water" (the liquid, one body per block) and "cube"; the stable substep count × substep_factor.
+    scene_options go to fl.Scene (e.g. contact_fill)."""
     import fluidlab_core as fl
     from fluidlab_core.shapes import Box
 
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1)
-    scene.add_particles(Box((0, 0, 0), (width, width, level)), liquid, name="water")
-    c, bottom = width / 2, level + drop
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1, **scene_options)
+    c = width / 2
+    if drop is not None:
+        bottom = level + drop
+        blocks = [((0, 0, 0), (width, width, level))]
+    else:
+        bottom = level - side * body.density / liquid.density + lift
+        lo, hi = c - side / 2, c + side / 2
+        blocks = [((0, 0, 0), (width, width, bottom)), ((0, 0, bottom), (lo, width, level)),
+                  ((hi, 0, bottom), (width, width, level)), ((lo, 0, bottom), (hi, lo, level)),
+                  ((lo, hi, bottom), (hi, width, level))]
+    for i, (a, b) in enumerate(blocks):
+        scene.add_particles(Box(a, b), liquid, name="water" if i == 0 else f"water{i}")
     scene.add_particles(Box((c - side / 2, c - side / 2, bottom), (c + side / 2, c + side / 2, bottom + side)),
                         body, name="cube")
     _substeps(scene, None)
+    scene.substeps = int(round(scene.substeps * substep_factor))
     return scene.build(), scene
 
 
