@@ -44,6 +44,7 @@ class Simulator:
         self._compiled = set()  # which solvers have run (their first run compiles their kernels)
         self.gas = None  # engine/gas.GasSolver in a scene with gas and particles (attach_gas)
         self.gas_coupling = None
+        self._fast_gas = None  # the gas's step on the fast state (gas_coupling.CoupledGas)
 
     # --- stepping ---------------------------------------------------------------------------------------
     @property
@@ -294,16 +295,12 @@ class Simulator:
         self._gas_start = gas.read_state()
 
     def _gas_step(self, step: int, twist: np.ndarray):
-        """The gas's step after the particles' (operator splitting, engine/gas_coupling.py)."""
-        gas, cp = self.gas, self.gas_coupling
-        if self.tool_specs:
-            p, R = self.state.read_tools(0)
-            gas.set_tools(p, R, twist[:, :3], twist[:, 3:])
-        sub_dt = self.dt / gas.spec.substeps
-        particles = (lambda: cp.particles_to_gas(self.state)) if gas.spec.particles_block else None
-        for j in range(gas.spec.substeps):
-            gas.step(sub_dt, step * gas.spec.substeps + j, particles=particles)
-        cp.gas_to_particles(self.state, self.dt)
+        """The gas's step after the particles' (operator splitting, engine/gas_coupling.py), on the fast state."""
+        from fluidlab_core.engine.gas_coupling import CoupledGas
+
+        if self._fast_gas is None:
+            self._fast_gas = CoupledGas(self.gas_coupling, self.state, self.dt, 0)
+        self._fast_gas.after_step(step, 0, twist, False)
 
     def gas_state(self):
         """The gas's state (fluidlab_core.gas.GasState) in a scene with particles and gas."""

@@ -144,8 +144,9 @@ class GasParticleCoupling:
 
 
 class CoupledGas:
-    """The gas of a coupled scene inside a checkpointed gradient rollout (checkpoint.rollout_with_grad): its step
-    after each MPM step, its state at each segment's start, and the backward of each step (module docstring).
+    """The gas of a coupled scene after each MPM step: on the fast solver's state (Simulator._gas_step) and inside
+    a checkpointed gradient rollout (checkpoint.rollout_with_grad), where it also keeps the gas's state at each
+    segment's start and goes back through each step (module docstring).
 
     coupling: the scene's GasParticleCoupling (its gas built with gradients); state: the differentiable solver's
     StateBuffer; dt: the scene step (s); first_step: the scene's step count at the rollout's start."""
