@@ -148,8 +148,10 @@ class CoupledGas:
     a checkpointed gradient rollout (checkpoint.rollout_with_grad), where it also keeps the gas's state at each
     segment's start and goes back through each step (module docstring).
 
-    coupling: the scene's GasParticleCoupling (its gas built with gradients); state: the differentiable solver's
-    StateBuffer; dt: the scene step (s); first_step: the scene's step count at the rollout's start."""
+    coupling: the scene's GasParticleCoupling (its gas built with gradients for a gradient rollout); state: the
+    solver's StateBuffer; dt: the scene step (s); first_step: the scene's step count at the rollout's start.
+    Host memory of a gradient rollout: the gas's state at each segment's start (in memory even when the particles'
+    checkpoints go to disk), and for the segment being undone, each gas substep's start."""
 
     def __init__(self, coupling: GasParticleCoupling, state, dt: float, first_step: int):
         self.cp, self.gas, self.state = coupling, coupling.gas, state
