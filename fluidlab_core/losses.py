@@ -214,7 +214,9 @@ class Callable(Loss):
 
 def _gas(state):
     if getattr(state, "gas", None) is None:
-        raise ValueError("this loss reads the gas, and the scene has none (Scene.add_gas)")
+        raise ValueError("this loss reads the gas, and the states it is given carry none: a scene with gas and no "
+                         "particles (Scene.add_gas; a GasSimulator) hands its losses the gas, a scene with particles "
+                         "and gas hands them the particles and tools only (docs/gas.md)")
     return state.gas
 
 
