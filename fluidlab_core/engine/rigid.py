@@ -28,7 +28,9 @@ and so builds the pressure gradient (from J above) that holds the body up, a slo
 Measured and ruled out: the exclusion step (made two-way, or pushing to s/4 outside: the same creep) and the
 layer-to-layer alternation of J (a linear fit of J over the body still holds it in a band). Tried and not kept: giving the
 body the liquid's push at its contact nodes directly (a frictionless wall-like contact law, no stress in the body): right
-from rest at Archimedes' depth (0.51-0.53), but a landing cube then stops far too high (0.27-0.30).
+from rest at Archimedes' depth (0.51-0.53), but a landing cube then stops far too high (0.27-0.30); the same law at the
+nodes inside the body's SDF, with the fields never joined and without the exclusion: one depth from any start (no band),
+but 0.68-0.70 at 16 and 24 cells (the nodes inside pass on about 0.72 of the hydrostatic push).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
