@@ -30,7 +30,8 @@ layer-to-layer alternation of J (a linear fit of J over the body still holds it 
 body the liquid's push at its contact nodes directly (a frictionless wall-like contact law, no stress in the body): right
 from rest at Archimedes' depth (0.51-0.53), but a landing cube then stops far too high (0.27-0.30); the same law at the
 nodes inside the body's SDF, with the fields never joined and without the exclusion: one depth from any start (no band),
-but 0.68-0.70 at 16 and 24 cells (the nodes inside pass on about 0.72 of the hydrostatic push).
+but 0.68-0.70 at 16 and 24 cells, as liquid creeps into the body's volume (with the exclusion made two-way instead, it
+sinks steadily).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
