@@ -182,14 +182,16 @@ def handshake(publishers: list, send_zero, timeout: float, stopped=None) -> str:
     deadline = time.monotonic() + timeout
     for pub, topic, expected in publishers:
         while pub.get_subscription_count() < expected:
-            if stopped():
-                return stopped()
+            reason = stopped()
+            if reason:
+                return reason
             if time.monotonic() > deadline:
                 return (f"the command stream's publisher on {topic} matched {pub.get_subscription_count()} of the "
                         f"{expected} subscribers the node's publisher has within {timeout:g} s; nothing was sent")
             time.sleep(0.002)
-    if stopped():
-        return stopped()
+    reason = stopped()
+    if reason:
+        return reason
     send_zero()
     for pub, topic, _ in publishers:
         while True:
@@ -199,8 +201,9 @@ def handshake(publishers: list, send_zero, timeout: float, stopped=None) -> str:
                         f"{timeout:g} s; nothing else was sent (the arm stays at rest)")
             if pub.wait_for_all_acked(Duration(nanoseconds=int(min(left, ACK_POLL) * 1e9))):
                 break
-            if stopped():
-                return stopped()
+            reason = stopped()
+            if reason:
+                return reason
     return ""
 
 
