@@ -755,7 +755,9 @@ class SimNode(Node):
         else:
             result.success = False
             result.message = (f"stopped after {stream.index} of {len(pl.velocities)} commands: {stream.outcome}"
-                              + (f" ({stream.reflex})" if stream.reflex else "") + "; the arm was ramped to rest" + note)
+                              + (f" ({stream.reflex})" if stream.reflex else "")
+                              + ("; the arm was ramped to rest" if stream.index else
+                                 "; nothing of the plan was sent (the arm stayed at rest)") + note)
             if stream.outcome == "cancelled" and goal_handle.is_cancel_requested:
                 goal_handle.canceled()
             else:
