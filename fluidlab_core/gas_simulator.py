@@ -405,10 +405,7 @@ class GasSimulator:
         result.grad_tool_rotation = gth
         result.grad_velocity = tuple(f.to_numpy() for f in cv)
         result.grad_scalars = cq.to_numpy()
-        result.grad_sources = self._source_grads()
-
-    def _source_grads(self) -> dict:
-        return self.solver.source_grads()
+        result.grad_sources = s.source_grads()
 
     def set_viscosity(self, viscosity: float):
         """Change the kinematic viscosity ν (m²/s) without rebuilding; refused above the explicit limit
