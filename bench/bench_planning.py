@@ -42,6 +42,7 @@ def main():
                                                    "planning_cpu.txt"))
     args = ap.parse_args()
     traj = stirring()
+    load = os.getloadavg()[0]  # other work on the machine slows planning: recorded with the figures
     plan(traj)  # warm-up: imports, URDF parsing, first allocations
     lines = [f"planning benchmark: {traj.duration:.0f} s trajectory ({traj.n_steps} twists at {traj.dt * 1e3:g} ms), "
              f"Mixing task, from the ready posture (approach included), {platform.processor() or platform.machine()}, "
@@ -59,7 +60,7 @@ def main():
                      f"{stage['path_error']:.2f} | {int(round(r.total_duration * rate))} | {r.total_duration:.2f} | "
                      f"{r.tool_path_error * 1e3:.2g} | {r.time_scale:.3g} |")
     lines.append("(stage columns: median seconds; 'stream' is the command stream's duration including the approach; "
-                 "the machine's 2 cores were shared with another engineer's Taichi compilation)")
+                 f"1-minute load average at the start: {load:.2f} on {os.cpu_count()} cores)")
     text = "\n".join(lines)
     print(text)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

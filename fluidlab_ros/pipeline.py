@@ -3,7 +3,9 @@
     tool poses (base frame)  -- Trajectory.poses(), moved by the task's scene pose if given in "scene"
       -> approach segment       a straight Cartesian line (quintic timing) from the start posture's tool pose
       -> IK (kinematics.py)     DLS differential IK with joint-limit and posture terms in the null space
-      -> feasibility pass       uniform time scale + smooth start/stop ramps (timescale.py)
+      -> feasibility pass       uniform time scale + smooth start/stop ramps; where the joint path's corners are
+                                too sharp to follow at that scale, it is filtered over up to the window of
+                                the scale's acceleration bound (timescale.py)
       -> Ruckig (smoothing.py)  jerk-limited following at the control rate (jerk also bounded by the torque rate)
       -> commands               v_k = (q_{k+1} - q_k) / T: integrating the held commands reproduces q_k exactly
       -> verify (verify.py)     every 1 ms tick under the hold model, against limits x margin; joint torques and
@@ -33,7 +35,7 @@ from fluidlab_ros.kinematics import DifferentialIK, IKOptions
 from fluidlab_ros.mounting import Mounting, load_mounting
 from fluidlab_ros.robot import READY_Q, Robot
 from fluidlab_ros.smoothing import JerkLimitedFollower
-from fluidlab_ros.timescale import TimeMap, choose_time_map
+from fluidlab_ros.timescale import TimeMap, choose_time_map, followable_path
 from fluidlab_ros.verify import ticks_per_command, verify
 
 PLAN_FRACTION = 0.9  # the smoothing stage plans within 90 % of (margin x limit); the verifier checks margin x limit
@@ -79,6 +81,7 @@ class PlanReport:
     min_clearance: dict = field(default_factory=dict)  # "table", the container's name, "self" -> least distance, m
     min_clearance_at: dict = field(default_factory=dict)  # same keys -> "<link> at t = ... s"
     collision_sample_spacing: float = 0.0  # m, largest motion of a link capsule between two checked samples
+    path_filter: float = 0.0  # s of trajectory time: width of the box filter on the task's joint path (0: none)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -153,7 +156,8 @@ def _approach_poses(start: np.ndarray, goal: np.ndarray, dt: float, speed: float
 
 
 class _Segment:
-    """IK samples of one segment, their spline q(r) and time map t -> r."""
+    """IK samples of one segment, their spline q(r) and time map t -> r. `q` is the joint path the arm is
+    to follow: for the task, the IK samples as timescale.followable_path returns them."""
 
     def __init__(self, name, poses, dt, q, tmap: TimeMap):
         self.name, self.poses, self.dt, self.q, self.tmap = name, poses, dt, q, tmap
@@ -279,8 +283,11 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                              f"({sc.binding}; peak joint speed {sc.velocity_ratio:.3g}x and windowed acceleration "
                              f"{sc.acceleration_ratio:.3g}x the planning limits), more than max_time_scale = "
                              f"{max_time_scale}", scale=sc.scale)
-        segs.append(_Segment("task", task_poses, trajectory.dt, task.q, tm))
-        return segs, tm, sc
+        # the joint path the arm can follow at this scale and jerk: the IK samples, filtered where their
+        # corners are too sharp (timescale.followable_path)
+        task_q, m = followable_path(task.q, trajectory.dt, tm.scale, TIME_MAP_SHARE * a_plan, jerk, accel_window)
+        segs.append(_Segment("task", task_poses, trajectory.dt, task_q, tm))
+        return segs, tm, sc, (2 * m + 1) * trajectory.dt if m else 0.0
 
     def smoothed(segs, jerk):
         """Reference at the control ticks, then jerk-limited smoothing."""
@@ -308,7 +315,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
     rate_budget = PLAN_FRACTION * margin
     smoothing_passes, rate_first = 0, 0.0
     for smoothing_passes in range(1, 4):
-        segments, tmap, sr = timed_segments(j_plan)
+        segments, tmap, sr, path_filter = timed_segments(j_plan)
         lap("time_scaling")
         try:
             starts, sm = smoothed(segments, j_plan)
@@ -387,7 +394,7 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
         jerk_budget=j_plan.tolist(), smoothing_passes=smoothing_passes, peak_torque=ver.torque.peak_torque.tolist(),
         peak_torque_rate=ver.torque.peak_torque_rate.tolist(), clearance=collision.clearance,
         min_clearance=dict(ver.collision.minimum), min_clearance_at=dict(ver.collision.where),
-        collision_sample_spacing=ver.collision.sample_spacing)
+        collision_sample_spacing=ver.collision.sample_spacing, path_filter=path_filter)
     return Plan(robot=robot.name, joint_names=robot.joint_names, control_rate=control_rate, q_start=q_start,
                 times=np.arange(len(commands)) * period, velocities=commands, positions=positions,
                 task_start_time=float(starts[-2]), task_end_time=float(starts[-1]), task_time_map=tmap,

@@ -5,8 +5,10 @@ the commands are held for 1 ms ticks and differenced (velocity, acceleration, je
 velocity limits written from Franka's formula), and the tool path comes from a numpy product of Franka's DH
 table. So a pipeline that reported success wrongly would fail these tests.
 """
+import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,8 @@ from fluidlab_ros.errors import InvalidInputError, LimitError, PlanningError, Un
 from fluidlab_ros.mounting import load_mounting, tasks
 from fluidlab_ros.pipeline import plan
 from fluidlab_ros.robot import READY_Q, load_robot
+from fluidlab_ros.stopping import stop_ramp
+from fluidlab_ros.timescale import box_filter, windowed_acceleration
 from fluidlab_ros.verify import verify
 
 from .conftest import report
@@ -268,6 +272,50 @@ def test_too_fast_trajectory_is_slowed_down_until_it_fits():
            task_duration=p.report.task_duration, tool_path_error_mm=err * 1e3)
     assert p.report.time_scale > 1.5 and p.report.task_duration > 1.5 * traj.duration
     assert err < 1e-3
+
+
+def test_box_filter_acceleration_is_the_windowed_acceleration_and_keeps_ends_lines_and_speeds():
+    """The pipeline filters a joint path with sharp corners so that its acceleration is what the time
+    scaling bounded: the windowed acceleration over the box's width (exactly, away from the ends)."""
+    rng = np.random.default_rng(0)
+    dt, m = 0.004, 6
+    qd = rng.normal(size=(200, 3))  # piecewise-constant velocities, as from twists
+    q = np.vstack([np.zeros((1, 3)), np.cumsum(qd, axis=0) * dt])
+    f = box_filter(q, m)
+    acc = np.diff(f, 2, axis=0) / dt ** 2  # acc[j] at sample j + 1, as windowed_acceleration's j
+    w = windowed_acceleration(qd, dt, (2 * m + 1) * dt)
+    inner = slice(2 * m, -2 * m)
+    assert np.abs(acc[inner] - w[inner]).max() < 1e-9 * np.abs(w).max()
+    assert np.abs(acc).max() < 0.5 * np.abs(np.diff(q, 2, axis=0) / dt ** 2).max()  # the corners are gone
+    assert np.array_equal(f[0], q[0]) and np.array_equal(f[-1], q[-1])
+    assert np.abs(np.diff(f, axis=0)).max() <= np.abs(np.diff(q, axis=0)).max() + 1e-15
+    line = 0.3 + np.outer(np.arange(50) * dt, [1.0, -2.0, 0.5])
+    assert np.allclose(box_filter(line, m), line, atol=1e-14)
+    assert np.array_equal(box_filter(q, 0), q)
+
+
+def test_plans_from_where_a_stop_left_the_arm_keep_to_the_tool_path():
+    """The node plans each goal from where the arm is. After a stop mid-trajectory the same trajectory, planned
+    again from the stopping point, used to leave its tool path by 2.3-15.7 mm depending chaotically on where
+    the stop came (a goal in CI was refused at 15.4 mm): the jerk-limited follower cut the corners of the
+    IK path's piecewise-constant twists. With those corners filtered (timescale.followable_path) it is
+    0.71-0.72 mm from 116 stopping points of this plan; these four gave 15-16 mm before."""
+    traj = Trajectory.load(Path(__file__).resolve().parents[1] / "trajectories/Mixing/Mixing_dp_seed0_small.json")
+    traj = dataclasses.replace(traj, dt=traj.dt / 0.5, twists=traj.twists * 0.5)  # speed_scale 0.5, as the node
+    node = dict(max_path_error=0.005, max_orientation_error=0.05)
+    first = plan(traj, **node)
+    lim = load_robot("fr3").limits
+    errors = []
+    for k in (200, 660, 950, 1425):
+        ramp = stop_ramp(first.velocities[k - 1], first.velocities[k - 2], first.control_rate, lim, MARGIN)
+        q = first.positions[k] + ramp.sum(axis=0) / first.control_rate
+        p = plan(traj, q_start=q, **node)
+        assert np.allclose(p.positions[0], q)
+        errors.append(tool_path_error(p, traj))
+    independent_check(p)
+    report("after a stop", tool_path_error_mm=[round(e * 1e3, 3) for e in errors], path_filter_ms=p.report.path_filter * 1e3)
+    assert max(errors) < 1.5e-3 and max(errors) - min(errors) < 0.2e-3, errors
+    assert 0 < p.report.path_filter <= 0.06
 
 
 def test_far_too_fast_trajectory_is_refused():

@@ -180,6 +180,19 @@ class Client:
     def result(self, handle, timeout: float, what: str = "the goal's result"):
         return self.wait(self.in_executor(handle.get_result_async), timeout, what)
 
+    def until_progress(self, handle, progress: list, at: float, log, timeout: float = 120.0):
+        """Wait until the goal's feedback (appended to `progress`) reaches `at`; if the goal ends first, fail
+        with its status and message, and the node's log (`log()`), rather than wait out the timeout."""
+        result = self.in_executor(handle.get_result_async)
+        deadline = time.monotonic() + timeout
+        while not progress or progress[-1] < at:
+            if result.done():
+                res = result.result()
+                raise AssertionError(f"the goal ended (status {res.status}: {res.result.message}) before progress "
+                                     f"{at}\n{log()}")
+            assert time.monotonic() < deadline, f"no progress {at} within {timeout} s\n{log()}"
+            time.sleep(0.01)
+
     def cancel(self, handle, timeout: float = 10.0):
         return self.wait(self.in_executor(handle.cancel_goal_async), timeout, "the cancel response")
 

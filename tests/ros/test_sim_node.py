@@ -244,10 +244,8 @@ def test_stop_and_cancel_ramp_the_arm_to_rest_within_limits(ros_env, client, tmp
             progress = []
             handle = client.send_goal(act, Execute.Goal(trajectory_name=MIXING, speed_scale=0.5),
                                       feedback=lambda m: progress.append(m.feedback.progress))
-            deadline = time.monotonic() + 120
-            while not progress or progress[-1] < 0.2:
-                assert time.monotonic() < deadline, node.text()
-                time.sleep(0.02)
+            assert handle.accepted
+            client.until_progress(handle, progress, 0.2, node.text)
             if how == "stop":
                 assert client.call(stop, Trigger.Request()).success
             else:

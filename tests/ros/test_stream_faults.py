@@ -52,10 +52,7 @@ def run_until(client, act, node, goal, progress_at: float):
     progress = []
     handle = client.send_goal(act, goal, feedback=lambda m: progress.append(m.feedback.progress))
     assert handle.accepted
-    deadline = time.monotonic() + 120
-    while not progress or progress[-1] < progress_at:
-        assert time.monotonic() < deadline, node.text()
-        time.sleep(0.01)
+    client.until_progress(handle, progress, progress_at, node.text)
     return handle
 
 
