@@ -365,21 +365,14 @@ class GasSimulator:
                         gp += gr["tool_position"]
                     if "tool_rotation" in gr:
                         gth += rotation_tangent_grad(np.asarray(gr["tool_rotation"]), rot[g + 1])
-                dev_v = np.zeros((nt, 3))
-                dev_w = np.zeros((nt, 3))
+                dev_v = dev_w = np.zeros((nt, 3))
                 if nt:
                     s.set_tools(pos[g + 1], rot[g + 1], applied[g, :, :3], applied[g, :, 3:])
-                for j in reversed(range(self.substeps)):
-                    s.write_state(starts[j_step][j])
-                    s.backward_step(sub_dt, (start.step + g) * self.substeps + j, cv, cq)
-                    if nt:
-                        dp, dR, dv, dw = s.tool_grads()
-                        gp += dp
-                        gth += rotation_tangent_grad(dR, rot[g + 1])
-                        dev_v += dv
-                        dev_w += dw
-                flags = s.carry_finite(cv[0], cv[1], cv[2], cq)
-                bad = [name for bit, name in ((1, "velocity"), (2, "scalars")) if flags & bit]
+                tool_g, bad = s.backward_substeps(starts[j_step], sub_dt, (start.step + g) * self.substeps, cv, cq)
+                if tool_g is not None:
+                    dp, dR, dev_v, dev_w = tool_g
+                    gp += dp
+                    gth += rotation_tangent_grad(dR, rot[g + 1])
                 if bad or not (np.all(np.isfinite(gp)) and np.all(np.isfinite(gth))):
                     raise NonFiniteGradientError(f"the gas gradient became NaN or infinite in {', '.join(bad) or 'the tool poses'} "
                                                  f"going back through step {g + 1}")

@@ -911,6 +911,23 @@ class GasSolver:
             self.boundaries.grad()
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
 
+    def backward_substeps(self, starts, dt: float, first_step: int, carry_v, carry_q, particles=None,
+                          particles_grad=None):
+        """Back through len(starts) consecutive substeps of dt, the j-th numbered first_step + j and begun from
+        the state starts[j] (read_state()), last first: backward_step for each, the tools set as they were
+        for them. The state is left at starts[0]. Returns (the tools' gradients summed over the substeps:
+        (dL/dp, dL/dR, dL/dv, dL/dω) as tool_grads(), or None without tools; the names of the carried
+        gradients that became NaN or infinite, "velocity" and/or "scalars", for the caller's error)."""
+        sums = None
+        for j in reversed(range(len(starts))):
+            self.write_state(starts[j])
+            self.backward_step(dt, first_step + j, carry_v, carry_q, particles=particles, particles_grad=particles_grad)
+            if self.n_tools:
+                got = self.tool_grads()
+                sums = got if sums is None else tuple(a + b for a, b in zip(sums, got))
+        flags = self.carry_finite(*carry_v, carry_q)
+        return sums, [name for bit, name in ((1, "velocity"), (2, "scalars")) if flags & bit]
+
     @ti.kernel
     def _take_carry(self, g0: ti.template(), g1: ti.template(), g2: ti.template(), gq: ti.template()):
         for d in ti.static(range(3)):

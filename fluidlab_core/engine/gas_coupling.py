@@ -216,22 +216,15 @@ class CoupledGas:
             cp.drag_wind.grad(self.state.x, s1, a)
             cp.add_velocity_grad(*self.carry_v)
         self._set_tools(s1, twist)
-        n_t = gas.n_tools
-        gp, gR, gv, gw = np.zeros((n_t, 3)), np.zeros((n_t, 3, 3)), np.zeros((n_t, 3)), np.zeros((n_t, 3))
         solid_grad = (lambda: cp.solid_grad(self.state.x, self.state.v, s1)) if gas.spec.particles_block else None
-        for j in reversed(range(self.substeps)):
-            gas.write_state(kept[j])
-            gas.backward_step(self.sub_dt, (self.first_step + g) * self.substeps + j, self.carry_v, self.carry_q,
-                              particles=self._particles(s1), particles_grad=solid_grad)
-            if n_t:
-                dp, dR, dv, dw = gas.tool_grads()
-                gp, gR, gv, gw = gp + dp, gR + dR, gv + dv, gw + dw
-        flags = gas.carry_finite(*self.carry_v, self.carry_q)
-        bad = [name for bit, name in ((1, "velocity"), (2, "scalars")) if flags & bit]
+        tool_g, bad = gas.backward_substeps(kept[:self.substeps], self.sub_dt, (self.first_step + g) * self.substeps,
+                                            self.carry_v, self.carry_q, particles=self._particles(s1),
+                                            particles_grad=solid_grad)
         if bad:
             raise NonFiniteGradientError(f"the gas gradient ({', '.join(bad)}) became NaN or infinite going back "
                                          f"through step {self.first_step + g + 1}")
-        if n_t:
+        if tool_g is not None:
+            gp, gR, gv, gw = tool_g
             self.state.add_steps_grad([s1], [{"tool_position": gp, "tool_rotation": gR}])
             self.state.add_twist_grad(s0, np.concatenate([gv, gw], axis=1))
 
