@@ -18,10 +18,11 @@ The acceleration is averaged over `accel_window` because trajectories are piecew
 instantaneous acceleration at a twist change is unbounded. Where the path's corners are sharper than the arm
 can follow at that scale, the arm is given it filtered over up to the same window (followable_path), whose
 acceleration is then that windowed acceleration, so the jerk-limited smoothing after this pass follows it
-closely instead of cutting corners; the filter's and the smoothing's path deviation is
-measured and bounded by the pipeline, and the rest of the budget is the smoothing's headroom. Inside a ramp the joint acceleration is q'' r'^2 + q' r'' = S(x)^2 A + S'(x) V / (s T) with A
-and V the path's peak |q''_W| / s^2 and |q'| over the ramp: T is the shortest ramp with that sum within
-a_plan for every x, and with the ramp's jerk term q' r''' = S''(x) V / (s T^2) within half the jerk budget.
+closely instead of cutting corners; the filter's and the smoothing's path deviation is measured and bounded
+by the pipeline, and the rest of the budget is the smoothing's headroom. Inside a ramp the joint acceleration
+is q'' r'^2 + q' r'' = S(x)^2 A + S'(x) V / (s T) with A and V the path's peak |q''_W| / s^2 and |q'| over the
+ramp: T is the shortest ramp with that sum within a_plan for every x, and with the ramp's jerk term
+q' r''' = S''(x) V / (s T^2) within half the jerk budget.
 """
 from __future__ import annotations
 

@@ -313,7 +313,8 @@ def test_plans_from_where_a_stop_left_the_arm_keep_to_the_tool_path():
         assert np.allclose(p.positions[0], q)
         errors.append(tool_path_error(p, traj))
     independent_check(p)
-    report("after a stop", tool_path_error_mm=[round(e * 1e3, 3) for e in errors], path_filter_ms=p.report.path_filter * 1e3)
+    report("after a stop", tool_path_error_mm=[round(e * 1e3, 3) for e in errors],
+           path_filter_ms=p.report.path_filter * 1e3)
     assert max(errors) < 1.5e-3 and max(errors) - min(errors) < 0.2e-3, errors
     assert 0 < p.report.path_filter <= 0.06
 
