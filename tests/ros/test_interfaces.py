@@ -126,6 +126,12 @@ SERVER = textwrap.dedent('''
 
         def run_optimise(self, goal_handle):
             goal = goal_handle.request
+            # Feedback is a volatile topic: what is published before this server has discovered the client's
+            # feedback reader is lost (under load the first of the three was, once). Wait for that reader.
+            deadline = time.monotonic() + 30.0
+            topic = "/fluidlab_msgs_test_server/optimise/_action/feedback"
+            while self.count_subscribers(topic) < 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
             best = float("inf")
             for iteration in range(3):
                 loss = 1.0 / (iteration + 1)
