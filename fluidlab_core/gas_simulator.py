@@ -365,7 +365,7 @@ class GasSimulator:
                         gp += gr["tool_position"]
                     if "tool_rotation" in gr:
                         gth += rotation_tangent_grad(np.asarray(gr["tool_rotation"]), rot[g + 1])
-                dev_v = dev_w = np.zeros((nt, 3))
+                dev_v, dev_w = np.zeros((nt, 3)), np.zeros((nt, 3))
                 if nt:
                     s.set_tools(pos[g + 1], rot[g + 1], applied[g, :, :3], applied[g, :, 3:])
                 tool_g, bad = s.backward_substeps(starts[j_step], sub_dt, (start.step + g) * self.substeps, cv, cq)

@@ -950,8 +950,9 @@ class SimNode(Node):
                     break
                 stall = time.monotonic() - float(buf.floats[HEARTBEAT])
                 stalled = not buf.ints[DONE] and stall > self.late_tick_limit + T
-                # A process that died after the wait above, while this thread drained (a loaded machine can
-                # hold it there longer than late_tick_limit: seen in CI), died; it did not stall.
+                # A process found dead once its heartbeat is stale died (after the wait above, while this thread
+                # drained); report that, not a stall (a killed one was once reported as stalled, on a machine
+                # loaded by two CPU-bound jobs beside the tests).
                 if died or (stalled and wait([sp.proc.sentinel], timeout=0)):
                     sp.proc.join(1.0)  # the sentinel is ready before the exit code is collected
                     failure = f"the command stream process died (exit code {sp.proc.exitcode})"
