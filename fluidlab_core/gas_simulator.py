@@ -365,11 +365,10 @@ class GasSimulator:
                         gp += gr["tool_position"]
                     if "tool_rotation" in gr:
                         gth += rotation_tangent_grad(np.asarray(gr["tool_rotation"]), rot[g + 1])
-                dev_v, dev_w = np.zeros((nt, 3)), np.zeros((nt, 3))
                 if nt:
                     s.set_tools(pos[g + 1], rot[g + 1], applied[g, :, :3], applied[g, :, 3:])
                 tool_g, bad = s.backward_substeps(starts[j_step], sub_dt, (start.step + g) * self.substeps, cv, cq)
-                if tool_g is not None:
+                if tool_g is not None:  # (dL/dp, dL/dR, dL/dv, dL/dω) of the step's tools; dev_*: used below
                     dp, dR, dev_v, dev_w = tool_g
                     gp += dp
                     gth += rotation_tangent_grad(dR, rot[g + 1])

@@ -139,12 +139,12 @@ def followable_path(q: np.ndarray, dt: float, scale: float, a_max: np.ndarray, j
     on the path (2.3-15.7 mm tool-path error for one trajectory planned from nearby stopping points; with this
     path 0.71-0.72 mm from 116 of them). Smooth paths (a circle) are left as they are: the filter
     would cut them (a 5 cm circle at 0.5 s per turn, filtered over the full window, left its path by 1.8 mm)."""
+    if len(q) < 3:  # no corner to filter
+        return box_filter(q, 0), 0
     r = np.arange(len(q)) * dt
     m_max = int(round(window / (2 * dt)))
     for m in range(m_max + 1):
         path = box_filter(q, m)
-        if len(q) < 3:
-            return path, m
         spline = CubicSpline(r, path, axis=0, bc_type="not-a-knot")
         acc = np.abs(spline(r, 2)).max(axis=0) / scale ** 2
         jerk = np.abs(spline(r[:-1] + dt / 2, 3)).max(axis=0) / scale ** 3
