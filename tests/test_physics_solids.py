@@ -179,15 +179,17 @@ def test_rayleigh_taylor_heavy_over_light_overturns():
 
 
 def test_magnus_a_spinning_disc_in_water_is_lifted_and_deflects_along_omega_cross_u():
-    """The paper's Magnus demo in the particle engine: a disc of water's density (radius 12 mm, 4.8 cells at 32
+    """The paper's Magnus demo in the particle engine: a disc of water's density (radius 12 mm, 2.4 cells at 32
     cells along a 16 cm slab) moving at U = 0.2 m/s along x with spin ω = α U / r about z, in water.
 
     Held at U and ω (validation.magnus_held), the water's force on it across the stream, averaged over two periods
     of the tank's sound, is the lift: along ω × U (+y for α > 0), none without spin, growing with α. Against
-    Kutta–Joukowski's inviscid ρ U Γ (Γ = 2π r² ω, the water at the surface moving with it) it measured 0.89 at
-    α = 1 and 0.73 at α = 2 here (0.60 and 0.40 at 64 cells, where the boundary layer the transfer smears is
-    thinner beside the disc; viscous cylinders at moderate Re give about 0.4 at α = 1, Mittal & Kumar 2003):
-    the ratio must lie between 0.2 and 1.2, as for the gas solver's spinning cylinder.
+    Kutta–Joukowski's ρ U Γ (Γ = 2π r² ω, the water at the surface moving with it) it measured 0.89 at α = 1 and
+    0.73 at α = 2 here, 0.63 and 0.41 at 64 cells, 0.48 at α = 1 on 96. The ratio falls with refinement as the
+    disc's effective Reynolds number rises (the transfer's numerical viscosity falls; drag coefficients 7.2, 4.1
+    and 3.1, those of a cylinder at Re of a few to ten): slow viscous flow past a rotating cylinder carries about
+    its own circulation 2π r² ω, viscous cylinders at Re = 200 about 0.4 of it at α = 1 (Mittal & Kumar 2003).
+    The ratio must lie between 0.2 and 1.2, as for the gas solver's spinning cylinder.
     Held only along x and in spin, free across (free_across), it deflects along ω × U: +11 mm at α = 1 after
     0.26 s, 0.3 mm without spin."""
     held = {a: validation.magnus_held(res=32, alpha=a) for a in (0.0, 1.0, 2.0)}
