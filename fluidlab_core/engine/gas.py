@@ -181,6 +181,7 @@ class GasSolver:
         self.static_solid.from_numpy(self._static)
         self.nu[None] = float(spec.viscosity)
         self._flags_ready = False
+        self._carry = None  # the carried-gradient fields (carry_fields), made on first use
         self.stats = {"iterations": [], "residual": []}
         self.upload_sources()
 
@@ -663,7 +664,7 @@ class GasSolver:
                     if ti.static(masked):
                         u_hi *= self._open_face(d, hi)
                         u_lo *= self._open_face(d, I)
-                    v += u_hi - u_lo
+                    v += ti.cast(u_hi - u_lo, self.real)  # the carried gradient is float64 (as before, summed in real)
             self.poisson.b[I] = v
 
     @ti.func
@@ -871,9 +872,9 @@ class GasSolver:
         for d in ti.static(range(3)):
             gin = ti.static((g0, g1, g2)[d])
             for I in ti.grouped(gin):
-                self.V[S3T][d].grad[I] = gin[I] - self._dt_y(d, I)
+                self.V[S3T][d].grad[I] = ti.cast(gin[I], self.real) - self._dt_y(d, I)
         for I in ti.grouped(gq):
-            self.Q[S2].grad[I] += gq[I]
+            self.Q[S2].grad[I] += ti.cast(gq[I], self.real)
 
     def backward_step(self, dt: float, step: int, carry_v, carry_q, particles=None, particles_grad=None):
         """The gradient of one gas step. The state at the step's start must be in S0 and the tools set; carry_v
@@ -938,10 +939,15 @@ class GasSolver:
             gq[I] = self.Q[S0].grad[I]
 
     def carry_fields(self):
-        """Fields for the gradient carried between steps (3 face fields, one scalar field), float64."""
-        nx, ny, nz = self.shape
-        return ([ti.field(ti.f64, shape=s) for s in self.face_shapes],
-                ti.field(ti.f64, shape=(self.n_q, nx, ny, nz)))
+        """Fields for the gradient carried between steps (3 face fields, one scalar field), float64; made once
+        per solver and the same on every call (the caller zeroes them). The kernels that take them (`_seed`,
+        `_take_carry`, `carry_finite`) are compiled per field they are given: new fields on every backward pass
+        recompiled them on every optimiser iteration, and Taichi never frees a field."""
+        if self._carry is None:
+            nx, ny, nz = self.shape
+            self._carry = ([ti.field(ti.f64, shape=s) for s in self.face_shapes],
+                           ti.field(ti.f64, shape=(self.n_q, nx, ny, nz)))
+        return self._carry
 
     def source_grads(self) -> dict:
         """{source name: {"position" (3,), "rotation" (3,) tangent (R ← exp([θ]×) R), "speed", <scalar>}}: the
