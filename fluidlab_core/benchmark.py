@@ -349,6 +349,24 @@ def _overview(ok: list[dict], out: Path, plt) -> Path | None:
     return path
 
 
+def die_with_parent():
+    """Make this process receive SIGTERM when its parent dies (Linux prctl PR_SET_PDEATHSIG; elsewhere a no-op).
+    The process pool's workers call it first: without it, a sweep killed by SIGTERM or SIGKILL left its running
+    job's worker computing on, unseen, for up to the length of the run (its result was never recorded)."""
+    import ctypes
+    import signal
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        return
+    if os.getppid() == 1:  # the parent died before the call
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
     """(submit(spec) -> handle, wait(handles) -> (done record, remaining handles), shutdown)."""
     if use_ray:
@@ -373,7 +391,7 @@ def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor
     from concurrent.futures import wait as futures_wait
 
-    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"))
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=die_with_parent)
 
     def wait_pool(handles):
         done, rest = futures_wait(handles, return_when=FIRST_COMPLETED)

@@ -1,6 +1,8 @@
 """The optimiser benchmark (fluidlab_core/benchmark.py): a tiny sweep on a local Ray, resumed; CMA-ES budgets that
 cannot hold its generations are refused; the flattening criterion."""
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -121,3 +123,51 @@ def test_paper_table_has_a_row_per_method_and_a_column_per_task():
     assert lines[3] == "| dp | 12.0 ± 2.0 | 4.0 ± 1.0 |"
     assert lines[4] == "| sac | – | 1.0 ± 0.0 (n=1) |"  # fewer seeds than the rest are marked; failed runs are not rows
     assert "mean ± std over 2 seeds" in lines[-1] and "A 1 − 200000 ℓ over 75 steps" in lines[-1]
+
+
+def test_a_killed_sweep_takes_its_pool_workers_with_it(tmp_path):
+    """The process pool's workers die with the sweep (benchmark.die_with_parent): a sweep killed by SIGKILL used to
+    leave its running job's worker computing on for up to the rest of the run, its result never recorded (seen
+    here: two orphaned AirCirculation runs, an hour of two cores). A parent process starts a pool worker on a
+    60 s job, the test kills the parent, and the worker must be gone within 10 s."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import multiprocessing as mp, os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from fluidlab_core.benchmark import die_with_parent\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ProcessPoolExecutor(1, mp_context=mp.get_context('spawn'), initializer=die_with_parent)\n"
+        "    print(pool.submit(os.getpid).result(), flush=True)\n"
+        "    pool.submit(time.sleep, 60)\n"
+        "    time.sleep(60)\n")
+    root = str(Path(__file__).resolve().parents[1])
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=root,
+                              env={**os.environ, "PYTHONPATH": root})
+    try:
+        worker = int(parent.stdout.readline())
+        os.kill(worker, 0)  # alive
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and _alive(worker):
+            time.sleep(0.1)
+        if _alive(worker):
+            os.kill(worker, signal.SIGKILL)
+            raise AssertionError(f"the pool worker {worker} outlived its killed parent by 10 s")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+
+
+def _alive(pid: int) -> bool:
+    """Whether process pid runs (a zombie, dead but not yet reaped by whoever adopted it, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
