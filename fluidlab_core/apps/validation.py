@@ -329,8 +329,8 @@ def magnus_held(res: int = 32, alpha: float = 1.0, dims: int = 2, seconds: float
     """A rigid body of water's density held at velocity `speed` (m/s) along x and spin ω = α·speed/radius (rad/s)
     about z, as a hand or a tool would hold it, through water at rest of `sound_speed` (m/s), `res` cells along
     the 0.16 m tank, no gravity. dims=2: a disc (radius 12 mm) through a slab two cells thick (0.16 × 0.12 m)
-    full of water; dims=3: a ball (radius 15 mm) in a closed 0.16 × 0.10 × 0.12 m tank full of water. Both start
-    0.04 m from the x- wall, mid-width.
+    full of water; dims=3: a ball (radius 15 mm) in a closed 0.16 × 0.10 × 0.12 m tank full of water. Both are
+    centred 0.04 m from the x- wall, mid-width.
 
     Held: before every 2 ms step, the body's particles are given the rigid motion U + ω × r (and APIC's C = [ω]×),
     then run free through the step's substeps. The force of the water on the body over that step is
@@ -347,6 +347,8 @@ def magnus_held(res: int = 32, alpha: float = 1.0, dims: int = 2, seconds: float
     import fluidlab_core as fl
     from fluidlab_core import materials as M
 
+    if dims not in (2, 3):
+        raise ValueError(f"magnus_held: dims must be 2 (a disc in a slab) or 3 (a ball), got {dims!r}")
     width, height = 0.16, 0.12
     depth = 0.12 if dims == 2 else 0.10
     radius = radius or (0.012 if dims == 2 else 0.015)
