@@ -267,6 +267,14 @@ def _outside(outer, hole):
     return Outside()
 
 
+def _set_rigid_motion(state, body: slice, v, omega):
+    """Give the particles `body` of `state` the rigid motion v + ω × r about their centroid (m/s, rad/s), and
+    APIC's C = ∇v = [ω]×."""
+    r = state.x[body] - state.x[body].mean(axis=0)
+    state.v[body] = np.asarray(v) + np.cross(omega, r)
+    state.C[body] = np.array([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
+
+
 def magnus(res: int = 64, alpha: float = 1.0, dims: int = 2, seconds: float = 0.06, speed: float = 0.2,
            radius: float = 0.012, sound_speed: float = 4.0, contact_fill: float = 0.97, every: int = 5) -> dict:
     """A rigid body of water's density started at `speed` (m/s) along x with spin α·speed/radius (rad/s) about
@@ -304,9 +312,7 @@ def magnus(res: int = 64, alpha: float = 1.0, dims: int = 2, seconds: float = 0.
     state = sim.get_state()
     body = sim.handle("body").slice
     omega = np.array([0.0, 0.0, alpha * speed / radius])
-    r = state.x[body] - state.x[body].mean(axis=0)
-    state.v[body] = state.v[body].mean(axis=0) + np.array([speed, 0.0, 0.0]) + np.cross(omega, r)
-    state.C[body] = np.array([[0.0, -omega[2], 0.0], [omega[2], 0.0, 0.0], [0.0, 0.0, 0.0]])  # APIC: ∇v = [ω]×
+    _set_rigid_motion(state, body, state.v[body].mean(axis=0) + np.array([speed, 0.0, 0.0]), omega)
     sim.set_state(state)
     x0, t0 = sim.positions("body").mean(axis=0), sim.time
     times, disp, vel, spin = [], [], [], []
@@ -371,23 +377,21 @@ def magnus_held(res: int = 32, alpha: float = 1.0, dims: int = 2, seconds: float
     body = sim.handle("body").slice
     mass = float(sim.masses("body").sum())
     omega = np.array([0.0, 0.0, alpha * speed / radius])
-    spin = np.array([[0.0, -omega[2], 0.0], [omega[2], 0.0, 0.0], [0.0, 0.0, 0.0]])  # APIC: ∇v = [ω]×
-    x0 = sim.positions("body").mean(axis=0)
+    state = sim.get_state()
+    x0 = state.x[body].mean(axis=0)
     times, force, disp = [], [], []
     v_across = 0.0
     while sim.time < seconds - 1e-9:
-        state = sim.get_state()
-        r = state.x[body] - state.x[body].mean(axis=0)
         held = np.array([speed, v_across if free_across else 0.0, 0.0])
-        state.v[body] = held + np.cross(omega, r)
-        state.C[body] = spin
+        _set_rigid_motion(state, body, held, omega)
         sim.set_state(state)
         sim.step()
-        v_end = sim.velocities("body").mean(axis=0)
+        state = sim.get_state()  # the step's end, and the next step's start
+        v_end = state.v[body].mean(axis=0)
         v_across = float(v_end[1])
         times.append(sim.time)
         force.append(mass * (v_end - held) / sim.dt)
-        disp.append(sim.positions("body").mean(axis=0) - x0)
+        disp.append(state.x[body].mean(axis=0) - x0)
     times, force = np.array(times), np.array(force)
     late = times >= average_from - 1e-12
     lift, drag = float(force[late, 1].mean()), float(-force[late, 0].mean())
