@@ -157,12 +157,15 @@ def _approach_poses(start: np.ndarray, goal: np.ndarray, dt: float, speed: float
 
 class _Segment:
     """IK samples of one segment, their spline q(r) and time map t -> r. `q` is the joint path the arm is
-    to follow: for the task, the IK samples as timescale.followable_path returns them."""
+    to follow: for the task, the IK samples as timescale.followable_path returns them, with its spline (fitted
+    here otherwise)."""
 
-    def __init__(self, name, poses, dt, q, tmap: TimeMap):
+    def __init__(self, name, poses, dt, q, tmap: TimeMap, spline: CubicSpline | None = None):
         self.name, self.poses, self.dt, self.q, self.tmap = name, poses, dt, q, tmap
-        r = np.arange(len(q)) * dt
-        self.spline = CubicSpline(r, q, axis=0, bc_type="not-a-knot")  # ends need not be at rest: ramps
+        if spline is None:
+            r = np.arange(len(q)) * dt
+            spline = CubicSpline(r, q, axis=0, bc_type="not-a-knot")  # ends need not be at rest: ramps
+        self.spline = spline
 
     def reference(self, t):
         r, rd, rdd = self.tmap(t)
@@ -285,8 +288,9 @@ def plan(trajectory: Trajectory, robot: str | Robot = "fr3", mounting: Mounting 
                              f"{max_time_scale}", scale=sc.scale)
         # the joint path the arm can follow at this scale and jerk: the IK samples, filtered where their
         # corners are too sharp (timescale.followable_path)
-        task_q, m = followable_path(task.q, trajectory.dt, tm.scale, TIME_MAP_SHARE * a_plan, jerk, accel_window)
-        segs.append(_Segment("task", task_poses, trajectory.dt, task_q, tm))
+        task_q, m, spline = followable_path(task.q, trajectory.dt, tm.scale, TIME_MAP_SHARE * a_plan, jerk,
+                                            accel_window)
+        segs.append(_Segment("task", task_poses, trajectory.dt, task_q, tm, spline))
         return segs, tm, sc, (2 * m + 1) * trajectory.dt if m else 0.0
 
     def smoothed(segs, jerk):

@@ -128,20 +128,22 @@ def box_filter(q: np.ndarray, m: int) -> np.ndarray:
 
 
 def followable_path(q: np.ndarray, dt: float, scale: float, a_max: np.ndarray, j_max: np.ndarray,
-                    window: float) -> tuple[np.ndarray, int]:
+                    window: float) -> tuple[np.ndarray, int, CubicSpline]:
     """The least filtered path (box_filter with m = 0, 1, ... up to round(window / (2 dt))) whose cubic
     spline, run `scale` times slower, keeps every joint within a_max (rad/s^2) and j_max (rad/s^3), so a
-    jerk-limited follower can track it without lagging. Returns (path, m); m is the largest one when none
-    fits: its acceleration is then the windowed acceleration over `window`, which choose_time_map bounds.
+    jerk-limited follower can track it without lagging. Returns (path, m, spline), the spline q(r) of the path
+    over trajectory time r = k dt (the pipeline follows it); m is the largest one when none fits: its
+    acceleration is then the windowed acceleration over `window`, which choose_time_map bounds.
 
     Why: the IK samples of piecewise-constant twists have a corner at every step. A follower that cannot
     reach its reference within a period cuts across, and where it comes back to the path depends chaotically
     on the path (2.3-15.7 mm tool-path error for one trajectory planned from nearby stopping points; with this
     path 0.71-0.72 mm from 116 of them). Smooth paths (a circle) are left as they are: the filter
     would cut them (a 5 cm circle at 0.5 s per turn, filtered over the full window, left its path by 1.8 mm)."""
-    if len(q) < 3:  # no corner to filter
-        return box_filter(q, 0), 0
     r = np.arange(len(q)) * dt
+    if len(q) < 3:  # no corner to filter
+        path = box_filter(q, 0)
+        return path, 0, CubicSpline(r, path, axis=0, bc_type="not-a-knot")
     m_max = int(round(window / (2 * dt)))
     for m in range(m_max + 1):
         path = box_filter(q, m)
@@ -149,8 +151,8 @@ def followable_path(q: np.ndarray, dt: float, scale: float, a_max: np.ndarray, j
         acc = np.abs(spline(r, 2)).max(axis=0) / scale ** 2
         jerk = np.abs(spline(r[:-1] + dt / 2, 3)).max(axis=0) / scale ** 3
         if np.all(acc <= a_max) and np.all(jerk <= j_max):
-            return path, m
-    return path, m_max
+            return path, m, spline
+    return path, m_max, spline
 
 
 def choose_time_map(q: np.ndarray, dt: float, velocity_bounds, a_plan: np.ndarray, j_plan: np.ndarray,
