@@ -15,6 +15,7 @@ import numpy as np
 TEMPERATURE, SMOKE = 0, 1
 WALLS = ("x-", "x+", "y-", "y+", "z-", "z+")
 ADVECTIONS = ("maccormack", "semi-lagrangian")
+LIMITERS = ("cell", "continuous")  # MacCormack's clamp range (engine/gas.py)
 
 
 class GasSolverError(RuntimeError):
@@ -70,6 +71,7 @@ class GasSpec:
     vorticity: float = 0.0  # ε
     viscosity: float = 0.0  # ν, m²/s
     advection: str = "maccormack"
+    limiter: str = "cell"
     tolerance: float = 1e-6
     max_iterations: int = 200
     on_fail: str = "raise"

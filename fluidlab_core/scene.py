@@ -289,8 +289,8 @@ class Scene:
                 ambient_temperature: float = 293.15, initial_temperature: float | None = None,
                 air_density: float = 1.2, buoyancy_temperature: float | None = None,
                 buoyancy_smoke: float | None = None, vorticity: float = 0.0, viscosity: float = 0.0,
-                advection: str = "maccormack", tolerance: float = 1e-6, max_iterations: int = 200,
-                on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
+                advection: str = "maccormack", limiter: str = "cell", tolerance: float = 1e-6,
+                max_iterations: int = 200, on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
                 statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
                 particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1):
         """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
@@ -303,7 +303,10 @@ class Scene:
         air_density kg/m³. Buoyancy a = g (κ s − β (T − T_amb)): β in 1/K (default 1/T_amb, an ideal gas), κ in
         m³/kg (default 1/air_density). vorticity: the confinement strength ε (0: off); viscosity: kinematic ν in
         m²/s (0: off; explicit, so ν dt/Δx² ≤ 1/6 per gas substep). advection: "maccormack" (second order,
-        clamped) or "semi-lagrangian". tolerance: relative residual of the pressure solve (MGPCG), at most
+        clamped) or "semi-lagrangian"; limiter: MacCormack's clamp range, "cell" (the 8 values the point was
+        interpolated from, the usual one; it jumps as the point crosses into the next cell) or "continuous" (the
+        interpolated minimum and maximum of each value's 27 neighbours: looser, and continuous in the point, so
+        the loss has no jumps from it; engine/gas.py). tolerance: relative residual of the pressure solve (MGPCG), at most
         max_iterations; on_fail: "raise" or "warn" when it is not reached. max_cfl: the most cells the flow may
         cross in one gas step (checked at build from the sources' speeds and every step from the flow). scalars:
         names of extra advected scalars. substeps: gas steps per scene step. statics_block / tools_block /
@@ -311,7 +314,7 @@ class Scene:
         with them); particle_drag: 1/s, the rate at which the gas drags particles towards its velocity (0: none),
         on the particle bodies named in drag_bodies (default all), which ride in the gas and do not block it:
         engine/gas_coupling.py."""
-        from fluidlab_core.gas import ADVECTIONS, GasSpec, _number, parse_walls
+        from fluidlab_core.gas import ADVECTIONS, LIMITERS, GasSpec, _number, parse_walls
 
         if self.gas is not None:
             raise ValueError("the scene already has gas (add_gas once)")
@@ -330,6 +333,8 @@ class Scene:
         shape = tuple(max(1, int(round(float(e) / dx))) for e in (hi - lo))
         if advection not in ADVECTIONS:
             raise ValueError(f"advection must be one of {ADVECTIONS}, got {advection!r}")
+        if limiter not in LIMITERS:
+            raise ValueError(f"limiter must be one of {LIMITERS}, got {limiter!r}")
         if on_fail not in ("raise", "warn"):
             raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
         if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
@@ -354,7 +359,7 @@ class Scene:
             buoyancy_temperature=_number("buoyancy_temperature", buoyancy_temperature, allow_none=True),
             buoyancy_smoke=_number("buoyancy_smoke", buoyancy_smoke, allow_none=True),
             vorticity=_number("vorticity", vorticity, 0.0), viscosity=_number("viscosity", viscosity, 0.0),
-            advection=advection, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
+            advection=advection, limiter=limiter, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
             max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
             statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
             particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every),

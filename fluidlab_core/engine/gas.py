@@ -17,7 +17,14 @@ One gas step of Δt (stages in order, each writing a field of its own so that it
                  solids take the solid's velocity
     advection    semi-Lagrangian with an RK2 backtrace x* = x − Δt u(x − ½Δt u(x)) and trilinear interpolation,
                  with MacCormack's correction (Selle et al. 2008): φ̂ = A(φ), φ̃ = A⁻¹(φ̂), φ ← φ̂ + ½(φ − φ̃),
-                 clamped to the range of the 8 values φ̂ interpolated from (so it stays bounded)
+                 clamped to a range so that it stays bounded: limiter "cell", the range of the 8 values φ̂
+                 interpolated from (Selle et al.); "continuous", [I(φ⁻), I(φ⁺)] with φ⁻_j, φ⁺_j the minimum and
+                 maximum of φ over sample j's 3 × 3 × 3 neighbours and I the same trilinear interpolation at the
+                 traced point. Each corner's neighbourhood holds the whole cell, so the continuous range holds the
+                 cell's and lies within the 4 × 4 × 4 samples about it (no new extrema beyond those). The cell's
+                 range jumps when the traced point crosses into the next cell, and with it the loss (a jump
+                 narrower than 1e-5 rad/s of the AirCirculation conditioner's yaw rate: bench/air_gradient.py);
+                 the continuous range moves with the point, so the limiter adds kinks but no jumps
     forces       u ← u + Δt [ g (κ s − β (T − T_amb))                    Boussinesq buoyancy (g = gravity)
                               + ε Δx (N × ω),  N = ∇|ω| / |∇|ω||          vorticity confinement (Fedkiw et al.)
                               + ν ∇²u ]                                   viscosity (explicit; ν Δt/Δx² ≤ 1/6)
@@ -118,6 +125,13 @@ class GasSolver:
         self.Vhi = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
         self.Qlo = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
         self.Qhi = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
+        # the continuous limiter: each sample's neighbourhood minimum and maximum (local_range), interpolated
+        self.continuous = spec.advection == "maccormack" and spec.limiter == "continuous"
+        if self.continuous:
+            self.Vnlo = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.Vnhi = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.Qnlo = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
+            self.Qnhi = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
         self.omega = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # vorticity at cells (1/s)
         self.f_vort = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # confinement acceleration (m/s²)
         self.solid = ti.field(ti.i8, shape=self.shape)  # 0: gas, 1: static, 2: tool, 3: particles
@@ -461,11 +475,45 @@ class GasSolver:
             return src.smoke is not None
         return name in src.scalars
 
+    @ti.func
+    def _neighbour_index(self, I, o, shape: ti.template()):
+        """Index I + o clamped into a grid of `shape`."""
+        J = I + o
+        for a in ti.static(range(3)):
+            J[a] = ti.min(ti.max(J[a], 0), shape[a] - 1)
+        return J
+
+    @ti.kernel
+    def local_range(self, src: ti.template()):
+        """The continuous limiter's φ⁻, φ⁺: the minimum and maximum of stage src's values over each sample's
+        3 × 3 × 3 neighbours (clamped at the grid's edge), into Vnlo/Vnhi and Qnlo/Qnhi."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.V[src][d]):
+                lo = self.V[src][d][I]
+                hi = lo
+                for o in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
+                    v = self.V[src][d][self._neighbour_index(I, o, ti.static(self.face_shapes[d]))]
+                    lo = ti.min(lo, v)
+                    hi = ti.max(hi, v)
+                self.Vnlo[d][I] = lo
+                self.Vnhi[d][I] = hi
+        for I in ti.grouped(self.solid):
+            for c in ti.static(range(self.n_q)):
+                lo = self.Q[src][c, I[0], I[1], I[2]]
+                hi = lo
+                for o in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
+                    J = self._neighbour_index(I, o, ti.static(self.shape))
+                    v = self.Q[src][c, J[0], J[1], J[2]]
+                    lo = ti.min(lo, v)
+                    hi = ti.max(hi, v)
+                self.Qnlo[c, I[0], I[1], I[2]] = lo
+                self.Qnhi[c, I[0], I[1], I[2]] = hi
+
     @ti.kernel
     def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(), keep: ti.template()):
         """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
-        traces forward). With `keep`, the range of the 8 values each point interpolated goes to Vlo/Vhi, Qlo/Qhi
-        (MacCormack's clamp)."""
+        traces forward). With `keep`, each point's clamp range for MacCormack goes to Vlo/Vhi, Qlo/Qhi: the range of
+        the 8 values it interpolated, or with the continuous limiter the interpolated φ⁻, φ⁺ (local_range)."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[dst][d]):
                 x = self._backtrace(vel, self._face_pos(d, I), dt)
@@ -474,6 +522,9 @@ class GasSolver:
                 value, lo, hi = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
                 self.V[dst][d][I] = value
                 if ti.static(keep):
+                    if ti.static(self.continuous):
+                        lo, _, _ = self._interp(self.Vnlo[d], x, o[0], o[1], o[2], -1)
+                        hi, _, _ = self._interp(self.Vnhi[d], x, o[0], o[1], o[2], -1)
                     self.Vlo[d][I] = lo
                     self.Vhi[d][I] = hi
         for I in ti.grouped(self.solid):
@@ -482,6 +533,9 @@ class GasSolver:
                 value, lo, hi = self._interp(self.Q[src], x, 0.5, 0.5, 0.5, c)
                 self.Q[dst][c, I[0], I[1], I[2]] = value
                 if ti.static(keep):
+                    if ti.static(self.continuous):
+                        lo, _, _ = self._interp(self.Qnlo, x, 0.5, 0.5, 0.5, c)
+                        hi, _, _ = self._interp(self.Qnhi, x, 0.5, 0.5, 0.5, c)
                     self.Qlo[c, I[0], I[1], I[2]] = lo
                     self.Qhi[c, I[0], I[1], I[2]] = hi
 
@@ -738,6 +792,8 @@ class GasSolver:
             self.source_weights()
         self.sources_stage(S0, S1, dt)
         if self.spec.advection == "maccormack":
+            if self.continuous:
+                self.local_range(S1)
             self.advect_sl(S1, S1, HAT, dt, True)
             self.advect_sl(HAT, S1, TLD, -dt, False)
             self.maccormack(S1, HAT, TLD, S2)
@@ -828,6 +884,14 @@ class GasSolver:
         for I in ti.grouped(self.Qlo):
             self.Qlo.grad[I] = 0.0
             self.Qhi.grad[I] = 0.0
+        if ti.static(self.continuous):
+            for d in ti.static(range(3)):
+                for I in ti.grouped(self.Vnlo[d]):
+                    self.Vnlo[d].grad[I] = 0.0
+                    self.Vnhi[d].grad[I] = 0.0
+            for I in ti.grouped(self.Qnlo):
+                self.Qnlo.grad[I] = 0.0
+                self.Qnhi.grad[I] = 0.0
         for I in ti.grouped(self.omega):
             self.omega.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.f_vort.grad[I] = ti.Vector([0.0, 0.0, 0.0])
@@ -900,6 +964,8 @@ class GasSolver:
             self.maccormack.grad(S1, HAT, TLD, S2)
             self.advect_sl.grad(HAT, S1, TLD, -dt, False)
             self.advect_sl.grad(S1, S1, HAT, dt, True)
+            if self.continuous:
+                self.local_range.grad(S1)
         else:
             self.advect_sl.grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
