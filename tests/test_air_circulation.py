@@ -88,10 +88,10 @@ def test_the_gymnasium_environment_passes_the_checker():
 def test_the_task_gradient_points_downhill():
     """DP's gradient of the task loss with respect to the yaw rates (float32, the task's own physics): a step
     against it lowers the loss, and a directional derivative agrees with a central difference within 15 %
-    (measured 7.5 %: 0.0117 against 0.0108). Not closer: MacCormack's limiter (its clamp range jumps when a
-    traced point crosses into the next cell) and the turning conditioner's voxelised cells make the loss piecewise
-    smooth, jumps that the backward pass cannot see and a difference over ±0.05 rad/s spans; over the whole
-    240-step episode they decide the slope (bench/air_gradient.py). The float64 check of every gradient path,
+    (measured 7.5 %: 0.0117 against 0.0108). Not closer: the flow under MacCormack advection amplifies small
+    changes of the yaw rate step after step, and the turning conditioner's voxelised cells switch, so the loss is
+    smooth only over spans far below ±0.05 rad/s (bench/air_gradient.py: over 60 steps to about ±1e-5, over the
+    whole 240-step episode to ±1e-7, whichever limiter; docs/tasks.md). The float64 check of every gradient path,
     with smooth parts only, is tests/test_gas.py (within 5e-3)."""
     task = small()
     sim = task.simulator(grad=True)
