@@ -22,9 +22,10 @@ One gas step of Δt (stages in order, each writing a field of its own so that it
                  maximum of φ over sample j's 3 × 3 × 3 neighbours and I the same trilinear interpolation at the
                  traced point. Each corner's neighbourhood holds the whole cell, so the continuous range holds the
                  cell's and lies within the 4 × 4 × 4 samples about it (no new extrema beyond those). The cell's
-                 range jumps when the traced point crosses into the next cell, and with it the loss (a jump
-                 narrower than 1e-5 rad/s of the AirCirculation conditioner's yaw rate: bench/air_gradient.py);
-                 the continuous range moves with the point, so the limiter adds kinks but no jumps
+                 range jumps when the traced point crosses into the next cell, and the clamped value with it where
+                 the clamp acts; the continuous range moves with the point, so its limiter adds kinks but no
+                 jumps. (Neither makes AirCirculation's 240-step loss smooth: the flow amplifies small changes
+                 over the horizon; bench/air_gradient.py, docs/gas.md.)
     forces       u ← u + Δt [ g (κ s − β (T − T_amb))                    Boussinesq buoyancy (g = gravity)
                               + ε Δx (N × ω),  N = ∇|ω| / |∇|ω||          vorticity confinement (Fedkiw et al.)
                               + ν ∇²u ]                                   viscosity (explicit; ν Δt/Δx² ≤ 1/6)
