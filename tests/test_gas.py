@@ -112,6 +112,8 @@ def test_bad_gas_input_is_refused_with_the_reason():
         scene.add_gas(walls={"x+": "leaky"})
     with pytest.raises(ValueError, match="unknown face"):
         scene.add_gas(walls={"top": "open"})
+    with pytest.raises(ValueError, match="limiter must be one of"):
+        scene.add_gas(limiter="smooth")
     with pytest.raises(ValueError, match="add_gas\\(\\) before"):
         scene.add_gas_source("vent", speed=1.0)
     scene.add_gas(resolution=8)
