@@ -133,6 +133,9 @@ class GasSolver:
             self.Vnhi = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.Qnlo = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
             self.Qnhi = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
+        # (velocity lo, velocity hi, scalar lo, scalar hi) of every clamp-range set, for zeroing their gradients
+        self._range_fields = [(self.Vlo, self.Vhi, self.Qlo, self.Qhi)] + \
+            ([(self.Vnlo, self.Vnhi, self.Qnlo, self.Qnhi)] if self.continuous else [])
         self.omega = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # vorticity at cells (1/s)
         self.f_vort = ti.Vector.field(3, real, shape=self.shape, needs_grad=g)  # confinement acceleration (m/s²)
         self.solid = ti.field(ti.i8, shape=self.shape)  # 0: gas, 1: static, 2: tool, 3: particles
@@ -878,21 +881,14 @@ class GasSolver:
         for st in ti.static(range(N_Q_STAGES)):
             for I in ti.grouped(self.Q[st]):
                 self.Q[st].grad[I] = 0.0
-        for d in ti.static(range(3)):
-            for I in ti.grouped(self.Vlo[d]):
-                self.Vlo[d].grad[I] = 0.0
-                self.Vhi[d].grad[I] = 0.0
-        for I in ti.grouped(self.Qlo):
-            self.Qlo.grad[I] = 0.0
-            self.Qhi.grad[I] = 0.0
-        if ti.static(self.continuous):
+        for vlo, vhi, qlo, qhi in ti.static(self._range_fields):
             for d in ti.static(range(3)):
-                for I in ti.grouped(self.Vnlo[d]):
-                    self.Vnlo[d].grad[I] = 0.0
-                    self.Vnhi[d].grad[I] = 0.0
-            for I in ti.grouped(self.Qnlo):
-                self.Qnlo.grad[I] = 0.0
-                self.Qnhi.grad[I] = 0.0
+                for I in ti.grouped(vlo[d]):
+                    vlo[d].grad[I] = 0.0
+                    vhi[d].grad[I] = 0.0
+            for I in ti.grouped(qlo):
+                qlo.grad[I] = 0.0
+                qhi.grad[I] = 0.0
         for I in ti.grouped(self.omega):
             self.omega.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.f_vort.grad[I] = ti.Vector([0.0, 0.0, 0.0])
