@@ -54,6 +54,7 @@ import taichi as ti
 
 from fluidlab_core.engine import statics
 from fluidlab_core.engine.poisson import FLUID, SOLID, PoissonSolver
+from fluidlab_core.runtime import compiled_fast
 from fluidlab_core.gas import (SMOKE, TEMPERATURE, GasCFLError, GasSolverError,  # noqa: F401 (re-exported)
                                GasSourceSpec, GasSpec, GasState, NonFiniteGasError)
 
@@ -260,11 +261,9 @@ class GasSolver:
         return ti.Vector(self._lower) + self.dx * (I.cast(self.real) + 0.5)
 
     @ti.func
-    def _interp(self, f: ti.template(), x, off0: ti.template(), off1: ti.template(), off2: ti.template(),
-                comp: ti.template()):
-        """Trilinear interpolation of field f (a face component, or with comp >= 0 the scalar comp of a Q field)
-        at world point x; returns (value, min, max) of the 8 values used."""
-        nshape = ti.static(f.shape[1:] if comp >= 0 else f.shape)
+    def _weights(self, nshape: ti.template(), x, off0: ti.template(), off1: ti.template(), off2: ti.template()):
+        """The trilinear stencil of world point x in a grid of `nshape` samples offset by (off0, off1, off2) cells:
+        the base index and the fractions (clamped into the grid; an axis with one sample has fraction 0)."""
         offs = ti.Vector([off0, off1, off2])
         gpos = (x - ti.Vector(self._lower)) / self.dx - offs
         base = ti.Vector([0, 0, 0])
@@ -275,24 +274,58 @@ class GasSolver:
                 b = ti.min(ti.cast(ti.floor(gd), ti.i32), nshape[d] - 2)
                 base[d] = b
                 frac[d] = gd - b
+        return base, frac
+
+    @ti.func
+    def _corner(self, f: ti.template(), nshape: ti.template(), base, a: ti.template(), b: ti.template(),
+                c: ti.template(), comp: ti.template()):
+        """The value of f (or of its scalar comp when comp >= 0) at stencil corner (a, b, c) from base."""
+        i0 = base[0] + (a if ti.static(nshape[0] >= 2) else 0)
+        i1 = base[1] + (b if ti.static(nshape[1] >= 2) else 0)
+        i2 = base[2] + (c if ti.static(nshape[2] >= 2) else 0)
+        s = 0.0
+        if ti.static(comp >= 0):
+            s = f[comp, i0, i1, i2]
+        else:
+            s = f[i0, i1, i2]
+        return s
+
+    @ti.func
+    def _corner_weight(self, frac, a: ti.template(), b: ti.template(), c: ti.template()):
+        return (frac[0] if a else 1.0 - frac[0]) * (frac[1] if b else 1.0 - frac[1]) * \
+            (frac[2] if c else 1.0 - frac[2])
+
+    @ti.func
+    def _interp(self, f: ti.template(), x, off0: ti.template(), off1: ti.template(), off2: ti.template(),
+                comp: ti.template()):
+        """Trilinear interpolation of field f (a face component, or with comp >= 0 the scalar comp of a Q field)
+        at world point x; returns (value, min, max) of the 8 values used."""
+        nshape = ti.static(f.shape[1:] if comp >= 0 else f.shape)
+        base, frac = self._weights(nshape, x, off0, off1, off2)
         value = 0.0
         lo = 1e30
         hi = -1e30
         for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
-            w = (frac[0] if a else 1.0 - frac[0]) * (frac[1] if b else 1.0 - frac[1]) * \
-                (frac[2] if c else 1.0 - frac[2])
-            i0 = base[0] + (a if ti.static(nshape[0] >= 2) else 0)
-            i1 = base[1] + (b if ti.static(nshape[1] >= 2) else 0)
-            i2 = base[2] + (c if ti.static(nshape[2] >= 2) else 0)
-            s = 0.0
-            if ti.static(comp >= 0):
-                s = f[comp, i0, i1, i2]
-            else:
-                s = f[i0, i1, i2]
-            value += w * s
+            s = self._corner(f, nshape, base, a, b, c, comp)
+            value += self._corner_weight(frac, a, b, c) * s
             lo = ti.min(lo, s)
             hi = ti.max(hi, s)
         return value, lo, hi
+
+    @ti.func
+    def _interp_pair(self, f: ti.template(), g: ti.template(), x, off0: ti.template(), off1: ti.template(),
+                     off2: ti.template(), comp: ti.template()):
+        """Trilinear interpolation of two fields of the same shape at x, with one stencil (the continuous limiter's
+        φ⁻ and φ⁺)."""
+        nshape = ti.static(f.shape[1:] if comp >= 0 else f.shape)
+        base, frac = self._weights(nshape, x, off0, off1, off2)
+        vf = 0.0
+        vg = 0.0
+        for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+            w = self._corner_weight(frac, a, b, c)
+            vf += w * self._corner(f, nshape, base, a, b, c, comp)
+            vg += w * self._corner(g, nshape, base, a, b, c, comp)
+        return vf, vg
 
     @ti.func
     def _velocity_at(self, st: ti.template(), x):
@@ -487,29 +520,35 @@ class GasSolver:
             J[a] = ti.min(ti.max(J[a], 0), shape[a] - 1)
         return J
 
+    @ti.func
+    def _range27(self, f: ti.template(), I, shape: ti.template(), comp: ti.template()):
+        """Minimum and maximum of f (or of its scalar comp when comp >= 0) over the 3 × 3 × 3 samples around I,
+        clamped at the grid's edge."""
+        lo = 1e30
+        hi = -1e30
+        for o in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
+            J = self._neighbour_index(I, o, shape)
+            v = 0.0
+            if ti.static(comp >= 0):
+                v = f[comp, J[0], J[1], J[2]]
+            else:
+                v = f[J]
+            lo = ti.min(lo, v)
+            hi = ti.max(hi, v)
+        return lo, hi
+
     @ti.kernel
     def local_range(self, src: ti.template()):
         """The continuous limiter's φ⁻, φ⁺: the minimum and maximum of stage src's values over each sample's
         3 × 3 × 3 neighbours (clamped at the grid's edge), into Vnlo/Vnhi and Qnlo/Qnhi."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[src][d]):
-                lo = self.V[src][d][I]
-                hi = lo
-                for o in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
-                    v = self.V[src][d][self._neighbour_index(I, o, ti.static(self.face_shapes[d]))]
-                    lo = ti.min(lo, v)
-                    hi = ti.max(hi, v)
+                lo, hi = self._range27(self.V[src][d], I, ti.static(self.face_shapes[d]), -1)
                 self.Vnlo[d][I] = lo
                 self.Vnhi[d][I] = hi
         for I in ti.grouped(self.solid):
             for c in ti.static(range(self.n_q)):
-                lo = self.Q[src][c, I[0], I[1], I[2]]
-                hi = lo
-                for o in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
-                    J = self._neighbour_index(I, o, ti.static(self.shape))
-                    v = self.Q[src][c, J[0], J[1], J[2]]
-                    lo = ti.min(lo, v)
-                    hi = ti.max(hi, v)
+                lo, hi = self._range27(self.Q[src], I, ti.static(self.shape), c)
                 self.Qnlo[c, I[0], I[1], I[2]] = lo
                 self.Qnhi[c, I[0], I[1], I[2]] = hi
 
@@ -527,8 +566,7 @@ class GasSolver:
                 self.V[dst][d][I] = value
                 if ti.static(keep):
                     if ti.static(self.continuous):
-                        lo, _, _ = self._interp(self.Vnlo[d], x, o[0], o[1], o[2], -1)
-                        hi, _, _ = self._interp(self.Vnhi[d], x, o[0], o[1], o[2], -1)
+                        lo, hi = self._interp_pair(self.Vnlo[d], self.Vnhi[d], x, o[0], o[1], o[2], -1)
                     self.Vlo[d][I] = lo
                     self.Vhi[d][I] = hi
         for I in ti.grouped(self.solid):
@@ -538,8 +576,7 @@ class GasSolver:
                 self.Q[dst][c, I[0], I[1], I[2]] = value
                 if ti.static(keep):
                     if ti.static(self.continuous):
-                        lo, _, _ = self._interp(self.Qnlo, x, 0.5, 0.5, 0.5, c)
-                        hi, _, _ = self._interp(self.Qnhi, x, 0.5, 0.5, 0.5, c)
+                        lo, hi = self._interp_pair(self.Qnlo, self.Qnhi, x, 0.5, 0.5, 0.5, c)
                     self.Qlo[c, I[0], I[1], I[2]] = lo
                     self.Qhi[c, I[0], I[1], I[2]] = hi
 
@@ -835,6 +872,7 @@ class GasSolver:
 
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
+    @compiled_fast
     def step(self, dt: float, step: int = 0, particles=None):
         """One gas step of dt seconds on the state in stage S0 (tools set with set_tools)."""
         self.prepare_boundaries(particles)
