@@ -5,10 +5,22 @@ a scene calls `ensure_init()`, which initialises the CPU backend in float32 when
 
 Calling `init()` again with the same arguments does nothing. Calling it with different arguments resets
 Taichi: simulators built before the reset are invalid and raise `RuntimeError` when used.
+
+Fast compilation (`fast_compile=True`, or the environment variable FLUIDLAB_FAST_COMPILE=1, which processes
+started from this one inherit): the solvers' forward kernels (the fast solver's step, the differentiable
+solver's forward substep, the gas solver's step: `compiled_fast`) compile at Taichi's `opt_level` 0, which skips
+most of its own IR optimisation passes, where compile time goes. The physics is the same code; they compile
+several times faster and run somewhat slower (`bench/fast_compile.py`, `bench/results/fast_compile_cpu.txt`).
+Everything else keeps level 1: Taichi's automatic differentiation needs it (a `.grad` kernel would raise the
+level to 1 for the rest of the process), and at level 0 Taichi 1.7.4's code generation fails on some kernels
+(an LLVM "Instruction does not dominate all uses" abort, seen on a small kernel that adds numpy gradients into a
+field's .grad). For the test suite and short jobs, whose time goes into compiling; long optimisations keep
+the default.
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import time
@@ -25,6 +37,7 @@ class RuntimeConfig:
     precision: str
     seed: int | None
     cpu_threads: int | None
+    fast_compile: bool
     generation: int  # bumped on every reset, so stale simulators can refuse to run
 
 
@@ -42,13 +55,15 @@ def _cuda_available(ti) -> bool:
 
 
 def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
-         cpu_threads: int | None = None, debug: bool = False) -> RuntimeConfig:
+         cpu_threads: int | None = None, debug: bool = False, fast_compile: bool | None = None) -> RuntimeConfig:
     """Choose the Taichi backend.
 
     arch: "cpu" (default), "cuda", or "auto" (CUDA when a device is present, CPU otherwise).
     precision: "f32" or "f64" for every real-valued field.
     seed: seeds Taichi's random generator and the default particle sampling.
     cpu_threads: threads for the CPU backend (default: all cores, or FLUIDLAB_CPU_THREADS).
+    fast_compile: compile the solvers' forward kernels at Taichi's opt_level 0 (default: off, or
+    FLUIDLAB_FAST_COMPILE=1); see the module's docstring.
     """
     global _config, _generation
     if arch not in ARCHES:
@@ -57,8 +72,14 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if cpu_threads is None and os.environ.get("FLUIDLAB_CPU_THREADS"):
         cpu_threads = int(os.environ["FLUIDLAB_CPU_THREADS"])
-    if _config is not None and (_config.arch, _config.precision, _config.seed, _config.cpu_threads) == (
-            arch, precision, seed, cpu_threads):
+    if fast_compile is None:
+        flag = os.environ.get("FLUIDLAB_FAST_COMPILE", "").strip()
+        if flag not in ("", "0", "1"):
+            raise ValueError(f"FLUIDLAB_FAST_COMPILE must be 0 or 1, got {flag!r}")
+        fast_compile = flag == "1"
+    fast_compile = bool(fast_compile)
+    if _config is not None and (_config.arch, _config.precision, _config.seed, _config.cpu_threads,
+                                _config.fast_compile) == (arch, precision, seed, cpu_threads, fast_compile):
         return _config
 
     import taichi as ti
@@ -85,8 +106,29 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
         kwargs["cpu_max_num_threads"] = int(cpu_threads)
     ti.init(**kwargs)
     _generation += 1
-    _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, _generation)
+    _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, fast_compile, _generation)
     return _config
+
+
+def compiled_fast(method):
+    """Decorator for the solvers' forward methods: under fast compilation, the kernels they launch compile at
+    Taichi's opt_level 0 (see the module's docstring); otherwise nothing changes."""
+
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        if _config is None or not _config.fast_compile:
+            return method(*args, **kwargs)
+        from taichi.lang import impl
+
+        cfg = impl.current_cfg()
+        saved = cfg.opt_level
+        cfg.opt_level = 0
+        try:
+            return method(*args, **kwargs)
+        finally:
+            cfg.opt_level = saved
+
+    return wrapper
 
 
 def ensure_init() -> RuntimeConfig:

@@ -1,8 +1,15 @@
 """Shared test set-up: the engine on the CPU in float32 (what users run by default), initialised once.
 
 FLUIDLAB_TEST_ARCH=cuda runs the whole suite with the engine on CUDA instead (the gradient tests switch to
-float64 on the same backend). Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid
-copies, thread counts), skipped on CUDA; `cuda` for tests that need a GPU, skipped on the CPU.
+float64 on the same backend).
+
+The suite compiles the solvers' forward kernels fast (FLUIDLAB_FAST_COMPILE=1, fluidlab_core/runtime.py; set
+here unless the caller set it, and inherited by the nodes and command lines the tests start): its time is mostly
+compilation, of simulators too small for the kernels' speed to matter (`bench/fast_compile.py`). FLUIDLAB_FAST_COMPILE=0 runs it as users run by
+default.
+
+Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid copies, thread counts), skipped on
+CUDA; `cuda` for tests that need a GPU, skipped on the CPU.
 """
 import os
 
@@ -12,6 +19,7 @@ import pytest
 import fluidlab_core
 
 TEST_ARCH = os.environ.get("FLUIDLAB_TEST_ARCH", "cpu")
+os.environ.setdefault("FLUIDLAB_FAST_COMPILE", "1")
 if TEST_ARCH not in ("cpu", "cuda"):
     raise ValueError(f"FLUIDLAB_TEST_ARCH must be cpu or cuda, got {TEST_ARCH!r}")
 

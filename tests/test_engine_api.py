@@ -50,6 +50,33 @@ def test_init_is_idempotent_and_validates():
         fl.init(precision="f16")
 
 
+def test_fast_compilation_lowers_the_level_only_around_the_solvers_forward(monkeypatch):
+    """FLUIDLAB_FAST_COMPILE (the suite sets 1, conftest.py): a `compiled_fast` method runs at Taichi's opt_level 0
+    and the level goes back to 1 after it, also when it raises; a value other than 0 or 1 is refused by name."""
+    import os
+
+    from taichi.lang import impl
+
+    cfg = fl.init(arch="cpu", precision="f32", seed=0)
+    assert cfg.fast_compile == (os.environ.get("FLUIDLAB_FAST_COMPILE") == "1")
+    seen = []
+
+    @fl.runtime.compiled_fast
+    def forward(fail=False):
+        seen.append(impl.current_cfg().opt_level)
+        if fail:
+            raise RuntimeError("stop")
+
+    forward()
+    with pytest.raises(RuntimeError, match="stop"):
+        forward(fail=True)
+    inside = 0 if cfg.fast_compile else 1
+    assert seen == [inside, inside] and impl.current_cfg().opt_level == 1
+    monkeypatch.setenv("FLUIDLAB_FAST_COMPILE", "yes")
+    with pytest.raises(ValueError, match="FLUIDLAB_FAST_COMPILE must be 0 or 1, got 'yes'"):
+        fl.init(arch="cpu", precision="f32", seed=0)
+
+
 def test_particle_mass_and_volume_follow_the_sampling_density():
     """Mass = ρ × shape volume for shapes that fit the lattice; curved shapes within a few percent."""
     scene, water = _small_scene(substeps=25)

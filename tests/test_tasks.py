@@ -296,7 +296,14 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
     optimiser's). Pouring within 2 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
     in another order move its loss (measured: 2.5843e-2 with one CPU thread, as the bench optimised it, 2.5759e-2
     with two, 0.33 %; each repeats exactly; on an AMD EPYC with AVX-512, 2026-11-27, the recorded 2.1361e-2
-    replays as 2.1623e-2, 1.23 %, while every other task replays to within 2e-5 there)."""
+    replays as 2.1623e-2, 1.23 %, while every other task replays to within 2e-5 there). Pouring replays in a
+    process of its own compiled as users run (FLUIDLAB_FAST_COMPILE=0, `fluidlab evaluate`): the suite's fast
+    compilation (conftest.py) rounds differently again, and moved it 4.2 % (2.2257e-2), while every other task
+    stayed within 0.1 %."""
+    import os
+    import re
+    import subprocess
+    import sys
     from pathlib import Path
 
     from fluidlab_core.trajectory import Trajectory
@@ -309,7 +316,14 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
         traj = Trajectory.load(files[0])
         task = small(name) if traj.metadata["size"] == "small" else tasks.make(name, traj.metadata["size"])
         actions, position = task.actions_from_trajectory(traj)
-        loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
+        if name == "Pouring":
+            run = subprocess.run([sys.executable, "-m", "fluidlab_core.cli", "evaluate", str(files[0])],
+                                 env=dict(os.environ, FLUIDLAB_FAST_COMPILE="0"), capture_output=True, text=True,
+                                 timeout=900)
+            assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+            loss = float(re.search(r"loss ([-+0-9.eE]+),", run.stdout).group(1))
+        else:
+            loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
         zero = task.evaluate(np.zeros_like(actions), rewards=False)["loss"]
         assert loss == pytest.approx(traj.metadata["final_loss"], rel=2e-2 if name == "Pouring" else 1e-3), name
         assert loss < zero  # the optimised trajectory beats leaving the tool still

@@ -34,6 +34,7 @@ from fluidlab_core.engine import grid, transfer
 from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine.solver import Solver
 from fluidlab_core.engine.state import StateBuffer
+from fluidlab_core.runtime import compiled_fast
 
 
 def slot_bytes(model) -> int:
@@ -136,6 +137,7 @@ class DiffSolver(Solver):
         backward (checkpointing's first pass over all but the last segment), or that has none."""
         self._forward(s, True, keep=False)
 
+    @compiled_fast
     def _forward(self, s: int, whole: bool, keep: bool = True):
         """The substep's forward. Without `whole` (before its backward), only what the backward reads and the
         forward did not keep: the SVD (the stress's backward reads it), with rigid bodies the stress's F_new

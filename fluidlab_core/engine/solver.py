@@ -31,6 +31,7 @@ from fluidlab_core.engine.control import Control
 from fluidlab_core.engine.emitters import schedule
 from fluidlab_core.engine.state import StateBuffer
 from fluidlab_core.engine.tools import advance_pose
+from fluidlab_core.runtime import compiled_fast
 
 
 @ti.data_oriented
@@ -302,6 +303,7 @@ class FastSolver(Solver):
         and the substep's emission (n_emitters, 3) from the host."""
         self.mpm_substep(state, 0, 0, False, twist, ti.static(self.model.n_tools > 0), emit, True)
 
+    @compiled_fast
     def step(self, state: StateBuffer, control: Control):
         """Advance `state` in place by one step (the model's substeps) with the tools' twists of `control`
         (already clipped to the workspaces: tools.plan) and its emitters switched on or off."""
