@@ -3,8 +3,11 @@ loss, at the task's starting pour (Task.initial_actions), over the whole 8 s hor
 
     python bench/pouring_gradient.py [--knots 3 5 7 9] [--eps 0.02 0.005]
     python bench/pouring_gradient.py --short      # 200 steps, float64, a smooth loss, steps from 5e-3 to 1e-6
+    python bench/pouring_gradient.py --short --softness 400   # the same with a soft glass (contact law, 1/m)
+    python bench/pouring_gradient.py --softness 400           # the 8 s gradient with a soft glass
 
-Writes bench/results/pouring_gradient_small.txt (--short: pouring_gradient_short.txt). Finite differences use
+Writes bench/results/pouring_gradient_small.txt (--short: pouring_gradient_short.txt; with --softness k the
+names end in _soft<k>). Finite differences use
 the simulator the gradient came from, with steps of eps rad/s on one knot.
 """
 from __future__ import annotations
@@ -24,17 +27,22 @@ def main():
     ap.add_argument("--short", action="store_true",
                     help="the first 200 steps in float64 with a smooth loss (mean squared distance of every particle "
                          "to a point), knot 1, eps 5e-3 1e-4 1e-6: is the loss smooth at the scale of the step?")
+    ap.add_argument("--softness", type=float, default=None,
+                    help="the glass's soft contact in 1/m in the gradient's scene (Pouring.glass_softness; default: hard)")
     args = ap.parse_args()
     results = Path(__file__).resolve().parent / "results"
     if args.short:
-        return short(results / "pouring_gradient_short.txt")
-    args.out = args.out or str(results / "pouring_gradient_small.txt")
+        name = "pouring_gradient_short" + (f"_soft{args.softness:g}" if args.softness else "") + ".txt"
+        return short(results / name, softness=args.softness)
+    suffix = f"_soft{args.softness:g}" if args.softness else ""
+    args.out = args.out or str(results / f"pouring_gradient_small{suffix}.txt")
     import fluidlab_core
     from fluidlab_core import tasks
     from fluidlab_core.optim import params as P
 
     fluidlab_core.init("cpu")
     task = tasks.make("Pouring", "small")
+    task.glass_softness = args.softness
     par = P.default(task)
     theta = np.zeros(par.size)
     theta[: par.n_action_params] = par.fit(task.initial_actions())
@@ -49,7 +57,8 @@ def main():
         return task.evaluate(par.actions(th), tool_position=par.tool_position(th), sim=sim, rewards=False)["loss"]
 
     knot_time = task.horizon * task.dt / (task.action_knots - 1)
-    lines = [f"Pouring (small, {task.horizon} steps of {task.dt * 1e3:g} ms, {task.action_knots} knots "
+    glass = "hard glass" if args.softness is None else f"soft glass ({args.softness:g} /m)"
+    lines = [f"Pouring (small, {glass}, {task.horizon} steps of {task.dt * 1e3:g} ms, {task.action_knots} knots "
              f"{knot_time:.2f} s apart), at the starting pour: loss {res.loss:.5g} m; gradient by the "
              f"differentiable simulator ({seconds:.0f} s) against central differences of the loss (m per rad/s).",
              f"{'knot':>4} {'time s':>7} {'gradient':>12} " + " ".join(f"{'FD eps ' + format(e, 'g'):>14}"
@@ -67,13 +76,14 @@ def main():
     print("\n".join(lines))
 
 
-def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6)):
+def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6), softness=None):
     import fluidlab_core
     from fluidlab_core import losses, tasks
     from fluidlab_core.optim import params as P
 
     fluidlab_core.init("cpu", precision="f64")
     task = tasks.make("Pouring", "small")
+    task.glass_softness = softness
     par = P.default(task)
     theta = np.zeros(par.size)
     theta[: par.n_action_params] = par.fit(task.initial_actions())
@@ -88,7 +98,8 @@ def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6)):
     ga = np.zeros((task.horizon, task.n_actions))
     ga[:steps] = res.grad_actions[:, 0, list(task.action_axes)]
     g = par.gradient(ga, res.grad_tool_position[0])[knot]
-    lines = [f"Pouring (small), the first {steps} steps in float64, loss: mean squared distance of every particle to "
+    glass = "hard glass" if softness is None else f"soft glass ({softness:g} /m)"
+    lines = [f"Pouring (small, {glass}), the first {steps} steps in float64, loss: mean squared distance of every particle to "
              f"(0.5, 0, 0) (m²), at the starting pour; knot {knot}: gradient {g:.4g} (m² per rad/s).",
              f"forward loss: differentiable solver {res.loss:.12g}, fast solver {run(theta, False).loss:.12g}"]
     for e in eps:

@@ -189,6 +189,7 @@ class Pouring(Task):
     # light liquid on the table with the heavy one in place about 1
     reward_c1 = 1.0
     reward_c2 = 20.0
+    glass_softness: float | None = None  # 1/m, the glass's contact in the soft scene (None: hard)
 
     def _domain(self):
         return POUR_LOWER, POUR_UPPER
@@ -234,7 +235,7 @@ class Pouring(Task):
                             name="light")
         scene.add_tool(glass_local, pose=pose, name=self.tool_name, friction=0.2, action_mask=(0, 0, 0, 0, 1, 0),
                        workspace=self.workspace(), max_speed=self.max_tool_speed * (2 * GLASS_RADIUS + GLASS_HEIGHT),
-                       keep_out=True)
+                       keep_out=True, softness=self.glass_softness if contact == "soft" else None)
 
     def _terms(self, steps):
         """The light liquid's height above the table plus the heavy liquid's L1 distance from its start, at `steps`."""
