@@ -5,8 +5,8 @@ float64 on the same backend).
 
 The suite compiles the solvers' forward kernels fast (FLUIDLAB_FAST_COMPILE=1, fluidlab_core/runtime.py; set
 here unless the caller set it, and inherited by the nodes and command lines the tests start): its time is mostly
-compilation, of simulators too small for the kernels' speed to matter (`bench/fast_compile.py`). FLUIDLAB_FAST_COMPILE=0 runs it as users run by
-default.
+compilation, of simulators too small for the kernels' speed to matter (`bench/fast_compile.py`).
+FLUIDLAB_FAST_COMPILE=0 before the test command runs it as users run by default.
 
 Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid copies, thread counts), skipped on
 CUDA; `cuda` for tests that need a GPU, skipped on the CPU.

@@ -54,9 +54,9 @@ import taichi as ti
 
 from fluidlab_core.engine import statics
 from fluidlab_core.engine.poisson import FLUID, SOLID, PoissonSolver
-from fluidlab_core.runtime import compiled_fast
 from fluidlab_core.gas import (SMOKE, TEMPERATURE, GasCFLError, GasSolverError,  # noqa: F401 (re-exported)
                                GasSourceSpec, GasSpec, GasState, NonFiniteGasError)
+from fluidlab_core.runtime import compiled_fast
 
 # stages of the step (indices into GasSolver.V / Q)
 S0, S1, HAT, TLD, S2, S3, S3T, S4 = range(8)
