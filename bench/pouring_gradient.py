@@ -31,22 +31,14 @@ def main():
                     help="the glass's soft contact in 1/m in the gradient's scene (Pouring.glass_softness; default: hard)")
     args = ap.parse_args()
     results = Path(__file__).resolve().parent / "results"
-    if args.short:
-        name = "pouring_gradient_short" + (f"_soft{args.softness:g}" if args.softness else "") + ".txt"
-        return short(results / name, softness=args.softness)
     suffix = f"_soft{args.softness:g}" if args.softness else ""
+    if args.short:
+        return short(results / f"pouring_gradient_short{suffix}.txt", softness=args.softness)
     args.out = args.out or str(results / f"pouring_gradient_small{suffix}.txt")
     import fluidlab_core
-    from fluidlab_core import tasks
-    from fluidlab_core.optim import params as P
 
     fluidlab_core.init("cpu")
-    task = tasks.make("Pouring", "small")
-    task.glass_softness = args.softness
-    par = P.default(task)
-    theta = np.zeros(par.size)
-    theta[: par.n_action_params] = par.fit(task.initial_actions())
-    sim = task.simulator(grad=True, contact="soft")
+    task, par, theta, sim = _starting_pour(args.softness)
     t0 = time.perf_counter()
     task.reset(sim, par.tool_position(theta))
     res = sim.rollout(task.twists(par.actions(theta)), task.loss(task.horizon), grad=True)
@@ -57,8 +49,7 @@ def main():
         return task.evaluate(par.actions(th), tool_position=par.tool_position(th), sim=sim, rewards=False)["loss"]
 
     knot_time = task.horizon * task.dt / (task.action_knots - 1)
-    glass = "hard glass" if args.softness is None else f"soft glass ({args.softness:g} /m)"
-    lines = [f"Pouring (small, {glass}, {task.horizon} steps of {task.dt * 1e3:g} ms, {task.action_knots} knots "
+    lines = [f"Pouring (small, {_glass(args.softness)}, {task.horizon} steps of {task.dt * 1e3:g} ms, {task.action_knots} knots "
              f"{knot_time:.2f} s apart), at the starting pour: loss {res.loss:.5g} m; gradient by the "
              f"differentiable simulator ({seconds:.0f} s) against central differences of the loss (m per rad/s).",
              f"{'knot':>4} {'time s':>7} {'gradient':>12} " + " ".join(f"{'FD eps ' + format(e, 'g'):>14}"
@@ -76,18 +67,30 @@ def main():
     print("\n".join(lines))
 
 
-def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6), softness=None):
-    import fluidlab_core
-    from fluidlab_core import losses, tasks
+def _starting_pour(softness):
+    """The small Pouring task with the glass's softness in DP's soft scene, its parametrisation, the parameters of
+    its starting pour (Task.initial_actions) and its soft-contact gradient simulator."""
+    from fluidlab_core import tasks
     from fluidlab_core.optim import params as P
 
-    fluidlab_core.init("cpu", precision="f64")
     task = tasks.make("Pouring", "small")
     task.glass_softness = softness
     par = P.default(task)
     theta = np.zeros(par.size)
     theta[: par.n_action_params] = par.fit(task.initial_actions())
-    sim = task.simulator(grad=True, contact="soft")
+    return task, par, theta, task.simulator(grad=True, contact="soft")
+
+
+def _glass(softness) -> str:
+    return "hard glass" if softness is None else f"soft glass ({softness:g} /m)"
+
+
+def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6), softness=None):
+    import fluidlab_core
+    from fluidlab_core import losses
+
+    fluidlab_core.init("cpu", precision="f64")
+    task, par, theta, sim = _starting_pour(softness)
 
     def run(th, grad):
         task.reset(sim, par.tool_position(th))
@@ -98,9 +101,8 @@ def short(out: Path, steps: int = 200, knot: int = 1, eps=(5e-3, 1e-4, 1e-6), so
     ga = np.zeros((task.horizon, task.n_actions))
     ga[:steps] = res.grad_actions[:, 0, list(task.action_axes)]
     g = par.gradient(ga, res.grad_tool_position[0])[knot]
-    glass = "hard glass" if softness is None else f"soft glass ({softness:g} /m)"
-    lines = [f"Pouring (small, {glass}), the first {steps} steps in float64, loss: mean squared distance of every particle to "
-             f"(0.5, 0, 0) (m²), at the starting pour; knot {knot}: gradient {g:.4g} (m² per rad/s).",
+    lines = [f"Pouring (small, {_glass(softness)}), the first {steps} steps in float64, loss: mean squared distance "
+             f"of every particle to (0.5, 0, 0) (m²), at the starting pour; knot {knot}: gradient {g:.4g} (m² per rad/s).",
              f"forward loss: differentiable solver {res.loss:.12g}, fast solver {run(theta, False).loss:.12g}"]
     for e in eps:
         d = np.zeros_like(theta)

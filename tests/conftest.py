@@ -19,9 +19,9 @@ import pytest
 import fluidlab_core
 
 TEST_ARCH = os.environ.get("FLUIDLAB_TEST_ARCH", "cpu")
-os.environ.setdefault("FLUIDLAB_FAST_COMPILE", "1")
 if TEST_ARCH not in ("cpu", "cuda"):
     raise ValueError(f"FLUIDLAB_TEST_ARCH must be cpu or cuda, got {TEST_ARCH!r}")
+os.environ.setdefault("FLUIDLAB_FAST_COMPILE", "1")
 
 
 def pytest_configure(config):
