@@ -116,6 +116,63 @@ def test_the_task_gradient_points_downhill():
     assert at(actions - 0.2 * d[:, None]) < res.loss
 
 
+def test_dp_over_windows_differentiates_each_window_from_where_the_actions_lead():
+    """"dp-window" (optim/dp.py): a window's gradient, taken from the state the current actions reach at its
+    start, is the gradient of the loss of that window and its look-ahead: along the knots that move the window's
+    actions and not the steps before it (so that the state at the window's start does not depend on them) it
+    equals the same loss's gradient through the whole run from step 0 (a separate backward pass, measured to
+    6e-7 relative), and a step against it lowers that loss. (Not against finite differences: the loss over
+    120 steps is rough at DP's scales, central differences over ±0.001 … 0.2 rad/s give 0.66–1.14 of the
+    gradient; docs/tasks.md.) The loop judges the whole horizon before each turn through the windows and after
+    its last step, and counts every step it runs, the forward runs to a window's start included."""
+    from fluidlab_core import losses
+    from fluidlab_core.optim import dp
+    from fluidlab_core.optim import params as P
+
+    task = small()
+    assert task.gradient_window == 60 and dp.windows(task.horizon, 60) == [(0, 60), (60, 60), (120, 60), (180, 60)]
+    sim = task.simulator(grad=True)
+    par = P.default(task)
+    rng = np.random.default_rng(1)
+    theta = par.clip(np.concatenate([0.8 + 0.2 * rng.standard_normal(par.n_action_params),
+                                     np.zeros(par.size - par.n_action_params)]))
+    start, length, n = 60, 60, 120
+    loss, g, used = dp.window_step(task, sim, par, theta, start, length)
+    assert used == start + n  # the run to the window, the window and its look-ahead
+    rows = par.matrix.reshape(task.horizon, task.n_actions, -1)
+    inside = np.zeros(par.size, bool)  # knots that leave every action before the window as it is
+    inside[: par.n_action_params] = ~np.any(rows[:start] != 0, axis=(0, 1)) & np.any(rows[start:start + length] != 0,
+                                                                                      axis=(0, 1))
+    assert 0 < inside.sum() < par.n_action_params
+    d = np.where(inside, g, 0.0)
+    d /= np.linalg.norm(d)
+
+    class AfterStart(losses.Sum):  # the window's loss steps, counted from step 0
+        def active(self, step, horizon):
+            return step > start and super().active(step, horizon)
+
+    task.reset(sim, par.tool_position(theta))
+    whole = sim.rollout(task.twists(par.actions(theta))[:start + n], AfterStart([task.step_term()], 1.0 / n),
+                        grad=True)
+    ga = np.zeros((task.horizon, task.n_actions))  # of the window's own actions, as dp-window steps them
+    ga[start:start + length] = whole.grad_actions[start:start + length, 0, list(task.action_axes)]
+    g_whole = par.gradient(ga, np.zeros(3))
+    report("AirCirculation window gradient (window 61-120, loss over 61-180)", loss=loss, whole_run_loss=whole.loss,
+           window=float(g @ d), whole_run=float(g_whole @ d), knots=int(inside.sum()),
+           relative_difference=abs(float((g_whole - g) @ d) / float(g @ d)))
+    assert whole.loss == pytest.approx(loss, rel=1e-5)
+    assert float(g_whole @ d) == pytest.approx(float(g @ d), rel=1e-4)
+    assert dp.window_step(task, sim, par, theta - 0.2 * d, start, length, grad=False)[0] < loss
+    seen = []
+    out = dp.run(task, 4 * task.horizon, seed=0, callback=lambda p: seen.append(p) and False,
+                 options=dp.DPOptions.windowed(task), method="dp-window", max_iterations=2)
+    # whole horizon (240) + window 1 and its look-ahead (120) + the run to window 2, it and its look-ahead (180)
+    # + the last parameters (240)
+    assert out.steps == 780 and out.iterations == 2 and len(out.history) == 2
+    assert [p.steps for p in seen] == [360, 540] and [p.region for p in seen] == [60, 60]
+    assert out.settings["gradient_window"] == 60 and out.settings["windows"] == 4
+
+
 def test_shipped_trajectory_reproduces_its_loss_and_beats_the_still_tool():
     from fluidlab_core.trajectory import Trajectory
 

@@ -61,6 +61,22 @@ def test_bad_requests_are_refused():
         optim.optimise(task, "dp", budget=1000, without=["sharing"])
     with pytest.raises(ValueError, match="applies to method 'dp' only"):
         optim.optimise(task, "cma-es", budget=1000, without=["attraction"])
+    with pytest.raises(ValueError, match="'dp-window' needs a loss that is a mean over the horizon's steps; Mixing"):
+        optim.optimise(task, "dp-window", budget=1000)
+
+
+def test_dp_windows_cover_the_horizon_once():
+    """dp-window's windows (optim/dp.py): consecutive, the last one shorter where the window does not divide the
+    horizon; a window outside 1 … horizon is refused by name. Which tasks offer the method follows their loss."""
+    from fluidlab_core.optim import dp
+
+    assert dp.windows(250, 60) == [(0, 60), (60, 60), (120, 60), (180, 60), (240, 10)]
+    assert dp.windows(5, 5) == [(0, 5)] and dp.windows(3, 1) == [(0, 1), (1, 1), (2, 1)]
+    for bad in (0, 6, 2.5):
+        with pytest.raises(ValueError, match="gradient window must be a whole number of steps from 1 to the horizon"):
+            dp.windows(5, bad)
+    offered = {name for name in tasks.names() if tasks.make(name, "small").loss_is_step_mean}
+    assert offered == {"GatheringEasy", "GatheringHard", "Transporting", "AirCirculation"}
 
 
 def test_dp_records_the_techniques_it_used_and_a_task_can_decline_the_expanding_region(gathering):

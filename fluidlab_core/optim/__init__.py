@@ -3,8 +3,9 @@
 Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding region, attraction, gradient sharing
 within fluid bodies; optim/dp.py), "dp-h" (the same loop without them), "cma-es" (optim/cmaes.py), and the
 model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py), and "pods"
-(a policy network improved with the simulator's gradients; optim/pods.py). The last three need the `rl` extra
-(torch). Every method
+(a policy network improved with the simulator's gradients; optim/pods.py), the paper's six (PAPER_METHODS); sac,
+ppo and pods need the `rl` extra (torch). And one of our own, "dp-window": DP over short windows of the horizon
+for tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is a mean over steps). Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
   floating-point sums in multithreaded CPU kernels),
@@ -19,7 +20,8 @@ import numpy as np
 
 from fluidlab_core.optim.progress import Progress, Result
 
-METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
+PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
+METHODS = (*PAPER_METHODS, "dp-window")
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
@@ -30,6 +32,9 @@ DESCRIPTIONS = {
     "ppo": "Proximal Policy Optimisation (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
     "pods": "PODS (Mora et al. 2021): a policy network fitted to actions improved by the simulator's gradient, "
             "two rollouts per iteration",
+    "dp-window": "gradient descent over short windows of the horizon in turn (each from the state the current "
+                 "actions reach, its gradient truncated there), for long horizons whose whole gradient explodes; "
+                 "tasks whose loss is a mean over steps (AirCirculation, Gathering, Transporting)",
 }
 
 
@@ -43,6 +48,9 @@ def check_request(task, method: str, budget, seed):
                          f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if method == "dp-window" and not task.loss_is_step_mean:
+        raise ValueError(f"method 'dp-window' needs a loss that is a mean over the horizon's steps; {task.name}'s "
+                         f"is not (use dp or dp-h)")
 
 
 TECHNIQUES = ("soft_contact", "expanding_region", "attraction", "gradient_sharing")  # DP's, each switchable
@@ -74,7 +82,8 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
                            min_generations=min_generations)
     else:
-        opts = dp.DPOptions(**{w: False for w in without}) if method == "dp" else dp.DPOptions.plain()
+        opts = (dp.DPOptions(**{w: False for w in without}) if method == "dp" else
+                dp.DPOptions.windowed(task) if method == "dp-window" else dp.DPOptions.plain())
         result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations)
     par = result.parametrisation
     actions, position = par.actions(result.theta), par.tool_position(result.theta)
@@ -86,4 +95,4 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            loss_history=result.history, metadata=meta)
 
 
-__all__ = ["optimise", "check_request", "METHODS", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]
+__all__ = ["optimise", "check_request", "METHODS", "PAPER_METHODS", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]

@@ -25,6 +25,18 @@ The techniques of Xian et al. (2023, §5), each switchable:
   term shrinks by itself as the liquid leaves).
 DP-H is the same loop with hard contact, the full horizon from the start, and neither attraction nor sharing.
 
+DP over windows ("dp-window", our own, for long horizons whose gradient explodes backwards in time): the horizon
+is cut into windows of w steps (`Task.gradient_window`, default a quarter of the horizon). An iteration runs
+the current actions forward without gradients to the start s of one window, then differentiates the loss of
+the window and of a look-ahead of w more steps (what the window's actions cause shows up later: air takes
+time to reach a sensor), (1/n) Σ_{k=s+1}^{s+n} ℓ_k with n = min(2w, N − s), and steps only the parameters of
+the window's own actions and the tool's starting position; the windows take turns, each with its own Adam
+moments. The state at s is held fixed (a truncated gradient: the effect of a window's actions past its
+look-ahead is left out), which keeps each backward pass short, where the gradient still matches finite
+differences. For tasks whose loss is the mean of the per-step term ℓ_k over the horizon
+(`Task.loss_is_step_mean`). Before each turn through the windows, and after the last step, the whole horizon
+is evaluated forward (its steps count in the budget) for the best so far.
+
 Budget: simulated steps. An iteration over r steps counts r (the backward pass re-simulates those steps too
 and costs a few forward passes in time; the reports give wall time beside steps).
 """
@@ -48,10 +60,17 @@ class DPOptions:
     learning_rate: float = 0.1  # Adam step, as a fraction of max_tool_speed (actions) or of 5 mm (tool position)
     initial_noise: float = 0.3  # std of the initial actions, as a fraction of max_tool_speed
     optimise_pose: bool = True
+    gradient_window: int | None = None  # steps per window ("dp-window"); None: the region scheme above
 
     @classmethod
     def plain(cls) -> "DPOptions":
         return cls(soft_contact=False, expanding_region=False, attraction=False, gradient_sharing=False)
+
+    @classmethod
+    def windowed(cls, task) -> "DPOptions":
+        """"dp-window": soft contact, the task's gradient window, no expanding region, attraction or sharing."""
+        return cls(expanding_region=False, attraction=False, gradient_sharing=False,
+                   gradient_window=task.gradient_window or max(1, task.horizon // 4))
 
 
 class _Adam:
@@ -70,9 +89,8 @@ class _Adam:
         return theta - self.lr * m_hat / (np.sqrt(v_hat) + self.eps)
 
 
-def run(task, budget: int, seed: int, callback=None, options: DPOptions | None = None, method: str = "dp",
-        max_iterations: int | None = None) -> Result:
-    opts = options or DPOptions()
+def _start(task, seed: int, opts: DPOptions):
+    """The parametrisation, the seeded starting parameters, Adam's step per parameter, and the gradient simulator."""
     par = P.default(task)
     rng = np.random.default_rng(seed)
     theta = np.zeros(par.size)
@@ -87,8 +105,17 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     rate = task.learning_rate if task.learning_rate is not None else opts.learning_rate
     lr = np.concatenate([np.full(par.n_action_params, rate * task.max_tool_speed),
                          np.full(par.size - par.n_action_params, opts.learning_rate * 5e-3 if opts.optimise_pose else 0.0)])
-    adam = _Adam(lr)
     sim = task.simulator(grad=True, contact="soft" if opts.soft_contact else "hard")
+    return par, theta, lr, sim
+
+
+def run(task, budget: int, seed: int, callback=None, options: DPOptions | None = None, method: str = "dp",
+        max_iterations: int | None = None) -> Result:
+    opts = options or DPOptions()
+    if opts.gradient_window is not None:
+        return _run_windows(task, budget, seed, callback, opts, method, max_iterations)
+    par, theta, lr, sim = _start(task, seed, opts)
+    adam = _Adam(lr)
     horizon = task.horizon
     expanding = opts.expanding_region and task.expanding_region
     region = max(1, int(np.ceil(0.25 * horizon))) if expanding else horizon
@@ -146,3 +173,79 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
                   {"soft_contact": opts.soft_contact, "expanding_region": expanding,
                    "attraction": attraction is not None, "gradient_sharing": sharing is not None,
                    "parametrisation": par.name})
+
+
+def windows(horizon: int, window: int) -> list[tuple[int, int]]:
+    """(start, length) of each gradient window: consecutive, the last one shorter where w does not divide the
+    horizon."""
+    if not (isinstance(window, (int, np.integer)) and 1 <= window <= horizon):
+        raise ValueError(f"gradient window must be a whole number of steps from 1 to the horizon ({horizon}), "
+                         f"got {window!r}")
+    return [(s, min(window, horizon - s)) for s in range(0, horizon, int(window))]
+
+
+def window_step(task, sim, par, theta: np.ndarray, start: int, length: int, grad: bool = True):
+    """The loss of one window of `length` steps and its look-ahead, (1/n) Σ_{k=start+1}^{start+n} ℓ_k with
+    n = min(2·length, horizon − start), under the parameters θ; with grad also its gradient with respect to θ
+    through those steps only (the state at `start` held fixed), from the actions of the window itself and the
+    tool's starting position: reset, run forward without gradients to `start`, then differentiate the n steps.
+    Returns (loss, gradient or None, simulated steps run)."""
+    from fluidlab_core.losses import Loss
+
+    n = min(2 * length, task.horizon - start)
+    twists = task.twists(par.actions(theta))
+    task.reset(sim, par.tool_position(theta))
+    if start:
+        sim.rollout(twists[:start], Loss(steps=()), grad=False)  # a loss active at no step: nothing evaluated
+    res = sim.rollout(twists[start:start + n], (1.0 / n) * task.step_term(), grad=grad)
+    if not grad:
+        return float(res.loss), None, start + n
+    ga = np.zeros((task.horizon, task.n_actions))
+    ga[start:start + length] = res.grad_actions[:length, 0, list(task.action_axes)]
+    return float(res.loss), par.gradient(ga, res.grad_tool_position[0]), start + n
+
+
+def _run_windows(task, budget, seed, callback, opts, method, max_iterations) -> Result:
+    if not task.loss_is_step_mean:
+        raise ValueError(f"DP over windows needs a loss that is the mean of a per-step term over the horizon; "
+                         f"{task.name}'s is not (Task.loss_is_step_mean)")
+    horizon = task.horizon
+    spans = windows(horizon, opts.gradient_window)
+    par, theta, lr, sim = _start(task, seed, opts)
+    adams = [_Adam(lr) for _ in spans]  # each window its own moments: a window's step ignores the others' gradients
+    history, steps_used, iteration, turn = [], 0, 0, 0
+    best = (np.inf, theta.copy())
+    judged = None  # the parameters last evaluated over the whole horizon
+    t0 = time.perf_counter()
+
+    def whole_horizon():
+        nonlocal steps_used, best, judged
+        task.reset(sim, par.tool_position(theta))
+        value = float(sim.rollout(task.twists(par.actions(theta)), task.loss(), grad=False).loss)
+        steps_used += horizon
+        history.append(value)
+        judged = theta.copy()
+        if value < best[0]:
+            best = (value, theta.copy())
+
+    while max_iterations is None or iteration < max_iterations:
+        start, length = spans[turn % len(spans)]
+        if turn % len(spans) == 0:  # before each turn through the windows (the first too): the whole horizon
+            if steps_used + horizon > budget:
+                break
+            whole_horizon()
+        if steps_used + start + min(2 * length, horizon - start) > budget:
+            break
+        loss, g, used = window_step(task, sim, par, theta, start, length)
+        steps_used += used
+        iteration += 1
+        theta = par.clip(adams[turn % len(spans)].step(theta, g))
+        turn += 1
+        if callback and callback(Progress(method, iteration, loss, best[0], steps_used, budget,
+                                          time.perf_counter() - t0, length, best[1], par)):
+            break
+    if steps_used + horizon <= budget and not np.array_equal(judged, theta):
+        whole_horizon()  # the last parameters, unless they were just judged
+    return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,
+                  {"soft_contact": opts.soft_contact, "gradient_window": int(opts.gradient_window),
+                   "windows": len(spans), "parametrisation": par.name})

@@ -79,6 +79,9 @@ def to_world(x, z) -> tuple[float, float]:
     return float(wx), float(wy)
 
 
+WINDOW_SECONDS = 1.5  # DP over windows (optim/dp.py): the gradient window, in simulated seconds
+
+
 class AirCirculation(Task):
     """Cool two rooms and keep one warm by turning an air conditioner (see the module docstring)."""
 
@@ -96,6 +99,13 @@ class AirCirculation(Task):
     reward_c1 = 1.0
     reward_c2 = 1.0 / 8.0
     paper_particles = (0, 0)
+    loss_is_step_mean = True
+
+    @property
+    def gradient_window(self) -> int:
+        """DP over windows: 1.5 s of steps (60 at small size), the span over which bench/air_gradient.py found the
+        loss's derivative to agree with finite differences (docs/tasks.md)."""
+        return max(1, round(WINDOW_SECONDS / self.config.dt))
 
     def _domain(self):
         return HOUSE_LOWER, HOUSE_UPPER

@@ -69,6 +69,10 @@ class Task:
     # DP's temporally expanding region suits losses that a partial horizon already approaches; a task whose goal
     # is a final state reached through a detour (tilt a glass and bring it back) sets this False
     expanding_region = True
+    # the task loss is the mean over the horizon of `step_term` (so a window of steps has a loss of its own: DP
+    # over windows, "dp-window", optim/dp.py); and that method's window in steps (None: a quarter of the horizon)
+    loss_is_step_mean = False
+    gradient_window: int | None = None
     # std of DP's seeded noise on a task's starting motion (Task.initial_actions), as a fraction of
     # max_tool_speed (DPOptions.initial_noise applies when the task starts from rest)
     start_noise = 0.05

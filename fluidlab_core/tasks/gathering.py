@@ -56,6 +56,7 @@ class Gathering(Task):
     sizes = GATHERING_SIZES
     observed_bodies = ("water", "object_a", "object_b")
     periodic = (10, 10)
+    loss_is_step_mean = True
     camera = (-60.0, 50.0)
     # reward r = c1 − c2·ℓ with ℓ the summed mean squared distance of the objects to their goals at a step (m²):
     # the start (ℓ ≈ 4.7e-3 m²) earns about 0.06, both objects at their goals 1

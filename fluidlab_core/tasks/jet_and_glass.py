@@ -56,6 +56,7 @@ class Transporting(Task):
     observed_bodies = ("water", "object")
     target_body = "object"
     camera = (-60.0, 50.0)
+    loss_is_step_mean = True
     # reward r = c1 − c2·ℓ with ℓ the mean distance of the object to the goal at a step (m): the start (about
     # 0.055 m) earns about −0.1, the object at its goal 1
     reward_c1 = 1.0
