@@ -125,7 +125,7 @@ def test_dp_over_windows_differentiates_each_window_from_where_the_actions_lead(
     120 steps is rough at DP's scales, central differences over ±0.001 … 0.2 rad/s give 0.66–1.14 of the
     gradient; docs/tasks.md.) The loop judges the whole horizon before each turn through the windows and after
     its last step, and counts every step it runs, the forward runs to a window's start included."""
-    from fluidlab_core import losses
+    from fluidlab_core import losses, optim
     from fluidlab_core.optim import dp
     from fluidlab_core.optim import params as P
 
@@ -164,13 +164,15 @@ def test_dp_over_windows_differentiates_each_window_from_where_the_actions_lead(
     assert float(g_whole @ d) == pytest.approx(float(g @ d), rel=1e-4)
     assert dp.window_step(task, sim, par, theta - 0.2 * d, start, length, grad=False)[0] < loss
     seen = []
-    out = dp.run(task, 4 * task.horizon, seed=0, callback=lambda p: seen.append(p) and False,
-                 options=dp.DPOptions.windowed(task), method="dp-window", max_iterations=2)
+    out = optim.optimise(task, "dp-window", 4 * task.horizon, seed=0, callback=lambda p: seen.append(p) and False,
+                         max_iterations=2)
+    meta = out.metadata
     # whole horizon (240) + window 1 and its look-ahead (120) + the run to window 2, it and its look-ahead (180)
     # + the last parameters (240)
-    assert out.steps == 780 and out.iterations == 2 and len(out.history) == 2
+    assert meta["steps_used"] == 780 and meta["iterations"] == 2 and len(out.loss_history) == 2
     assert [p.steps for p in seen] == [360, 540] and [p.region for p in seen] == [60, 60]
-    assert out.settings["gradient_window"] == 60 and out.settings["windows"] == 4
+    assert meta["settings"]["gradient_window"] == 60 and meta["settings"]["windows"] == 4
+    assert meta["final_loss"] == pytest.approx(min(out.loss_history), rel=1e-6)  # no contact: one physics
 
 
 def test_shipped_trajectory_reproduces_its_loss_and_beats_the_still_tool():
