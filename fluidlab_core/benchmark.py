@@ -5,7 +5,8 @@
     fluidlab benchmark ...            (the same)
 
 What a run is. One optimisation of one task by one method (optim.METHODS: the paper's six by default, sac, ppo
-and pods needing the `rl` extra, and dp-window, ours, when named; ABLATIONS below: DP with techniques switched off) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
+and pods needing the `rl` extra, and dp-window, ours, when named; ABLATIONS below: DP with techniques switched
+off) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
 every method: a DP iteration over r steps counts r, an RL environment step 1, a PODS iteration 2 rollouts;
 DP's backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
 `--min-generations` generations (default 30). Its population is chosen to fit (optim/cmaes.py), and a budget
@@ -434,10 +435,12 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
             specs.append({"task": name, "method": STILL, "seed": 0, "size": size, "budget": budget, "arch": arch,
                           "threads": threads, "out": str(out.resolve())})
         for m in methods:
-            if m == "dp-window" and not task.loss_is_step_mean:
-                refused.append({"task": name, "method": m, "why": "its loss is not a mean over steps, which DP over "
-                                "windows needs"})
-                continue
+            if m == "dp-window":
+                try:
+                    optim.check_request(task, m, budget, 0)  # refuses a task whose loss is not a mean over steps
+                except ValueError as err:
+                    refused.append({"task": name, "method": m, "why": str(err)})
+                    continue
             if m == "cma-es":
                 try:
                     cmaes.population_for(task, budget, min_generations)

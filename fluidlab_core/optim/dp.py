@@ -184,6 +184,11 @@ def windows(horizon: int, window: int) -> list[tuple[int, int]]:
     return [(s, min(window, horizon - s)) for s in range(0, horizon, int(window))]
 
 
+def _differentiated(start: int, length: int, horizon: int) -> int:
+    """Steps a window's iteration differentiates: the window and a look-ahead as long, within the horizon."""
+    return min(2 * length, horizon - start)
+
+
 def window_step(task, sim, par, theta: np.ndarray, start: int, length: int, grad: bool = True):
     """The loss of one window of `length` steps and its look-ahead, (1/n) Σ_{k=start+1}^{start+n} ℓ_k with
     n = min(2·length, horizon − start), under the parameters θ; with grad also its gradient with respect to θ
@@ -192,7 +197,7 @@ def window_step(task, sim, par, theta: np.ndarray, start: int, length: int, grad
     Returns (loss, gradient or None, simulated steps run)."""
     from fluidlab_core.losses import Loss
 
-    n = min(2 * length, task.horizon - start)
+    n = _differentiated(start, length, task.horizon)
     twists = task.twists(par.actions(theta))
     task.reset(sim, par.tool_position(theta))
     if start:
@@ -234,7 +239,7 @@ def _run_windows(task, budget, seed, callback, opts, method, max_iterations) -> 
             if steps_used + horizon > budget:
                 break
             whole_horizon()
-        if steps_used + start + min(2 * length, horizon - start) > budget:
+        if steps_used + start + _differentiated(start, length, horizon) > budget:
             break
         loss, g, used = window_step(task, sim, par, theta, start, length)
         steps_used += used
