@@ -182,6 +182,7 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
     all have one."""
     ok = [r for r in runs if "final_loss" in r]
     now = now or {}
+    w = max([8] + [len(r["method"]) for r in runs])  # the method column, as wide as the longest name
     lines = []
     if ok:
         lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
@@ -202,7 +203,7 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
             lines.append(f"{task}: horizon {tr[0]['horizon']} steps, budget {tr[0]['budget']} steps "
                          f"({tr[0]['budget'] // tr[0]['horizon']} rollouts), reward r = {tr[0]['reward_c1']:g} − "
                          f"{tr[0]['reward_c2']:g} ℓ per step")
-            lines.append(f"  {'method':<8} {'final loss':>24} {'return':>20} {'n':>2} {'flat':>5} {'wall s':>8} "
+            lines.append(f"  {'method':<{w}} {'final loss':>24} {'return':>20} {'n':>2} {'flat':>5} {'wall s':>8} "
                          f"{'ms/step':>8} {'loss @ equal wall':>18}")
         methods = list(dict.fromkeys(r["method"] for r in runs if r["task"] == task))
         walls = {m: np.mean([r["wall"] for r in tr if r["method"] == m]) for m in methods
@@ -213,20 +214,20 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
             failed = [r for r in runs if r["task"] == task and r["method"] == m and "error" in r]
             if not mr:
                 why = failed[0]["error"][:110] if failed else "no finished run"
-                lines.append(f"  {m:<8} ({why})")
+                lines.append(f"  {m:<{w}} ({why})")
                 continue
             f = np.array([r["final_loss"] for r in mr])
             ret = np.array([r["return"] for r in mr])
             again = [now[r["key"]] for r in mr if r["key"] in now]
             now_text = f"  now {np.mean(again):.4e}" if again and len(again) == len(mr) else ""
             if m == STILL:
-                lines.append(f"  {'still':<8} {f.mean():>12.4e} {'':<11} {ret.mean():>9.3f} {'':<10} "
+                lines.append(f"  {'still':<{w}} {f.mean():>12.4e} {'':<11} {ret.mean():>9.3f} {'':<10} "
                              f"(the tool kept still: the loss to beat){now_text}")
                 continue
             flat = [flattened(r["curve"]) for r in mr]
             reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
             at_equal = f"{np.mean(reached):.4e}" if len(reached) == len(mr) else "not reached"
-            lines.append(f"  {m:<8} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
+            lines.append(f"  {m:<{w}} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
                          f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} "
                          f"{1e3 * np.mean([r['wall'] / r['steps_used'] for r in mr]):>8.1f} {at_equal:>18}"
                          + (f"  ({len(failed)} failed)" if failed else "") + now_text)

@@ -125,6 +125,26 @@ def test_paper_table_has_a_row_per_method_and_a_column_per_task():
     assert "mean ± std over 2 seeds" in lines[-1] and "A 1 − 200000 ℓ over 75 steps" in lines[-1]
 
 
+def test_run_table_columns_line_up_under_a_long_method_name():
+    """The run table's columns start where the header's do, whatever the longest method name (dp-window is
+    nine characters; the column was eight, and every row of that method shifted by one)."""
+    def rec(method, seed, loss):
+        return {"task": "A", "method": method, "seed": seed, "key": f"A|{method}|{seed}", "final_loss": loss,
+                "return": -loss, "size": "small", "budget": 750, "horizon": 75, "reward_c1": 1.0,
+                "reward_c2": 1.0, "wall": 10.0 + seed, "steps_used": 750, "curve": [[750, loss, 5.0]]}
+
+    runs = [rec("still", 0, 2.0), rec("dp", 0, 1.0), rec("dp-window", 20, 1.5), rec("dp-window", 22, 1.25)]
+    lines = benchmark.table(runs).splitlines()
+    head = next(line for line in lines if line.lstrip().startswith("method"))
+    rows = {line.split()[0]: line for line in lines if line.split()[:1] in (["dp"], ["dp-window"])}
+    assert set(rows) == {"dp", "dp-window"}
+    # the columns are right-aligned: the wall time (10 s, 31 s) ends where the header's 'wall s' ends, and the
+    # mean loss starts in the same column in every row
+    wall_end = head.index("wall s") + len("wall s")
+    assert rows["dp"][:wall_end].endswith(" 10") and rows["dp-window"][:wall_end].endswith(" 31"), (head, rows)
+    assert rows["dp"].index("1.0000e+00") == rows["dp-window"].index("1.3750e+00"), rows
+
+
 def test_a_killed_sweep_takes_its_pool_workers_with_it(tmp_path):
     """The process pool's workers die with the sweep (benchmark.die_with_parent): a sweep killed by SIGKILL used to
     leave its running job's worker computing on for up to the rest of the run, its result never recorded (seen
