@@ -111,6 +111,10 @@ def run_job(spec: dict) -> dict:
                     marks.pop(0)
                 wall = time.perf_counter() - t0 - spent["eval"]
                 curve.append([int(p.steps), evaluate(p.best_theta, p.parametrisation), round(wall, 3)])
+                # a run can take hours (Pouring's DP: about 2.5 h on one core): say how far it is at each checkpoint
+                print(f"  {spec['task']} {spec['method']} seed {spec['seed']}: {100 * p.steps / budget:.0f} % of the "
+                      f"budget, best loss {curve[-1][1]:.4e} on the reference physics, {wall / 60:.1f} min",
+                      file=sys.stderr, flush=True)
             return False
 
         method, without = (("dp", ABLATIONS[spec["method"]]) if spec["method"] in ABLATIONS

@@ -145,6 +145,22 @@ def test_run_table_columns_line_up_under_a_long_method_name():
     assert rows["dp"].index("1.0000e+00") == rows["dp-window"].index("1.3750e+00"), rows
 
 
+def test_a_run_reports_its_progress_at_each_checkpoint(tmp_path, capsys):
+    """A benchmark run can take hours (Pouring's DP about 2.5 h on one core) and its record is written only at its
+    end, so the worker prints a line at each checkpoint: the share of the budget, the best loss so far on the
+    reference physics, and the time. Two CMA-ES generations of 4 on LatteArtStir, checkpoints at half and all of
+    the budget."""
+    spec = {"task": "LatteArtStir", "method": "cma-es", "seed": 0, "size": "small", "budget": 8 * 75, "arch": "cpu",
+            "threads": 1, "min_generations": 2, "checkpoints": 2, "out": str(tmp_path)}
+    record = benchmark.run_job(spec)
+    assert "final_loss" in record, record.get("traceback")
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "% of the budget" in line]
+    assert [line.split(":")[1].split("%")[0].strip() for line in lines] == ["50", "100"], err
+    assert lines[0].startswith("  LatteArtStir cma-es seed 0: 50 % of the budget, best loss ")
+    assert f"{record['curve'][-1][1]:.4e}" in lines[-1]  # the loss the record's curve holds
+
+
 def test_a_killed_sweep_takes_its_pool_workers_with_it(tmp_path):
     """The process pool's workers die with the sweep (benchmark.die_with_parent): a sweep killed by SIGKILL used to
     leave its running job's worker computing on for up to the rest of the run, its result never recorded (seen
