@@ -14,11 +14,15 @@ that cannot hold them is refused before anything runs. Every run is judged on th
 physics (hard contact): its final loss and the reward return r = Σ_k (c1 − c2 ℓ_k), with c1, c2 per task
 (Task.reward_c1, reward_c2; the table states them).
 
-Curves. While a run goes on, the best parameters so far are evaluated on the reference physics at
-`--checkpoints` evenly spaced points of the budget. These evaluations are bookkeeping: they count neither in
-the budget nor in the run's wall time. So every method's curve is on the same physics and the same axis: best
-reference loss against simulated steps, and against the run's own wall time. A curve has flattened when its
-last 20 % of the budget improved it by less than 1 % of its loss there; the table says how many seeds did.
+Curves. While a run goes on, its best iterate so far is evaluated on the reference physics at `--checkpoints`
+evenly spaced points of the budget. "Best" is by the optimiser's own loss (DP's is on its soft physics), so the
+value at a checkpoint is what the method would return if stopped there, judged on the reference; it can rise
+from one checkpoint to the next, and the final loss is the last one's, never the curve's minimum (choosing the
+minimum would select on the judging physics). These evaluations are bookkeeping: they count neither in the
+budget nor in the run's wall time. So every method's curve is on the same physics and the same axis: the
+reference loss of the best iterate against simulated steps, and against the run's own wall time. A curve has
+flattened when its last 20 % of the budget lowered it by less than 1 % of its loss there; the table says how
+many seeds did.
 
 Jobs. With Ray installed (`pip install ray`, part of the test extras), runs are Ray tasks. On one machine a
 local Ray starts with `--jobs` CPUs (default: all cores), one run per CPU, and each run's Taichi gets
@@ -113,7 +117,7 @@ def run_job(spec: dict) -> dict:
                 curve.append([int(p.steps), evaluate(p.best_theta, p.parametrisation), round(wall, 3)])
                 # a run can take hours (Pouring's DP: about 2.5 h on one core): say how far it is at each checkpoint
                 print(f"  {spec['task']} {spec['method']} seed {spec['seed']}: {100 * p.steps / budget:.0f} % of the "
-                      f"budget, best loss {curve[-1][1]:.4e} on the reference physics, {wall / 60:.1f} min",
+                      f"budget, best iterate's loss {curve[-1][1]:.4e} on the reference physics, {wall / 60:.1f} min",
                       file=sys.stderr, flush=True)
             return False
 
@@ -161,12 +165,13 @@ def _append(path: Path, record: dict):
 
 
 def flattened(curve) -> bool | None:
-    """Whether the last FLAT_WINDOW of the budget improved the best loss by less than FLAT_TOLERANCE of it;
-    None for a curve too short to say."""
+    """Whether the last FLAT_WINDOW of the budget lowered the run's loss (the reference loss of its best iterate,
+    `_loss_at`) by less than FLAT_TOLERANCE of it; None for a curve too short to say. A curve that rose over the
+    window has flattened."""
     if len(curve) < 3:
         return None
     steps = np.array([c[0] for c in curve], float)
-    best = np.minimum.accumulate(np.array([c[1] for c in curve], float))
+    best = np.array([c[1] for c in curve], float)
     cut = steps[-1] * (1.0 - FLAT_WINDOW)
     before = best[steps <= cut]
     if len(before) == 0:
@@ -175,10 +180,12 @@ def flattened(curve) -> bool | None:
     return bool(ref - best[-1] <= FLAT_TOLERANCE * max(abs(ref), 1e-30))
 
 
-def _best_at(curve, axis: int, at: float) -> float:
-    """Best reference loss of a run by `at` on axis 0 (steps) or 2 (wall s); NaN before its first point."""
+def _loss_at(curve, axis: int, at: float) -> float:
+    """A run's loss by `at` on axis 0 (steps) or 2 (wall s): the reference loss of its best iterate at its last
+    checkpoint by then, what it would have returned if stopped there (not the minimum over its checkpoints,
+    which would choose on the judging physics); NaN before its first checkpoint."""
     vals = [c[1] for c in curve if c[axis] <= at + 1e-9]
-    return float(np.min(vals)) if vals else float("nan")
+    return float(vals[-1]) if vals else float("nan")
 
 
 def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None = None) -> str:
@@ -191,9 +198,10 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
     if ok:
         lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
                      f"size {ok[0]['size']}, the budget per run under each task. Lower loss, higher return is better.")
-        lines.append("'flat': seeds whose best loss improved < 1 % over the last 20 % of the budget. "
-                     "'loss @ equal wall': each method's best loss by the wall time of the task's fastest method "
-                     "('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
+        lines.append("A run's loss at a point of its budget is the reference loss of its best iterate (best by the "
+                     "optimiser's own loss) at its last checkpoint by then. 'flat': seeds whose loss fell < 1 % over "
+                     "the last 20 % of the budget. 'loss @ equal wall': each method's loss by the wall time of the "
+                     "task's fastest method ('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
                      "the kernels (the first runs of a sweep compile; later ones load Taichi's cache). 'ms/step': "
                      "wall time per simulated step of the budget, the optimiser's cost beside the physics (DP's "
                      "includes its backward pass).")
@@ -229,7 +237,7 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
                              f"(the tool kept still: the loss to beat){now_text}")
                 continue
             flat = [flattened(r["curve"]) for r in mr]
-            reached = [v for v in (_best_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
+            reached = [v for v in (_loss_at(r["curve"], 2, t_equal) for r in mr) if np.isfinite(v)]
             at_equal = f"{np.mean(reached):.4e}" if len(reached) == len(mr) else "not reached"
             lines.append(f"  {m:<{w}} {f.mean():>12.4e} ± {f.std():<9.2e} {ret.mean():>9.3f} ± {ret.std():<8.3f} "
                          f"{len(mr):>2} {sum(1 for x in flat if x)}/{len(mr):<3} {walls[m]:>8.0f} "
@@ -276,8 +284,8 @@ def paper_table(runs: list[dict]) -> str:
 
 
 def plot(runs: list[dict], out: Path) -> list[Path]:
-    """One PNG per task: best reference loss against simulated steps and against wall time, a line per method
-    (the mean over seeds) with a band from the best to the worst seed."""
+    """One PNG per task: the reference loss of the best iterate against simulated steps and against wall time,
+    a line per method (the mean over seeds) with a band from the best to the worst seed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -296,15 +304,15 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
             for ax, axis, label in ((axes[0], 0, "simulated steps"), (axes[1], 2, "wall time (s)")):
                 top = max(r["curve"][-1][axis] for r in mr)
                 grid = np.linspace(0, top, 60)[1:]
-                ys = np.array([[_best_at(r["curve"], axis, g) for g in grid] for r in mr])
+                ys = np.array([[_loss_at(r["curve"], axis, g) for g in grid] for r in mr])
                 keep = np.isfinite(ys).all(axis=0)  # from where every seed has a point
                 ys, grid = ys[:, keep], grid[keep]
                 line, = ax.plot(grid, ys.mean(axis=0), label=f"{m} ({len(mr)} seeds)")
                 ax.fill_between(grid, ys.min(axis=0), ys.max(axis=0), color=line.get_color(), alpha=0.2)
                 ax.set_xlabel(label)
-                ax.set_ylabel("best loss (reference physics)")
-        axes[0].set_title(f"{task}: best loss vs simulated steps")
-        axes[1].set_title(f"{task}: best loss vs wall time")
+                ax.set_ylabel("loss of the best iterate (reference physics)")
+        axes[0].set_title(f"{task}: loss vs simulated steps")
+        axes[1].set_title(f"{task}: loss vs wall time")
         axes[0].legend()
         fig.tight_layout()
         path = out / f"curves_{task}.png"
@@ -317,7 +325,7 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
 
 def _overview(ok: list[dict], out: Path, plt) -> Path | None:
     """One figure for the README: a panel per task, each method's improvement on the still tool against the share
-    of the budget, (L_still − L_best) / |L_still| averaged over seeds (higher is better; 0 is the still tool, 1
+    of the budget, (L_still − L) / |L_still| averaged over seeds, L the reference loss of the best iterate (higher is better; 0 is the still tool, 1
     a loss of zero; it reads the same for Mixing, whose loss is negative)."""
     task_names = [t for t in dict.fromkeys(r["task"] for r in ok)
                   if any(r["task"] == t and r["method"] == STILL for r in ok)]
@@ -335,7 +343,7 @@ def _overview(ok: list[dict], out: Path, plt) -> Path | None:
             if not mr:
                 continue
             grid = np.linspace(0.0, 1.0, 41)[1:]
-            ys = np.array([[_best_at(r["curve"], 0, g * r["budget"]) for g in grid] for r in mr])
+            ys = np.array([[_loss_at(r["curve"], 0, g * r["budget"]) for g in grid] for r in mr])
             keep = np.isfinite(ys).all(axis=0)
             gain = (still - ys[:, keep].mean(axis=0)) / abs(still)
             ax.plot(grid[keep], gain, color=colors[m], label=m)
