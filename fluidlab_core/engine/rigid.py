@@ -34,8 +34,9 @@ but 0.68-0.70 at 16 and 24 cells, as liquid creeps into the body's volume (with 
 sinks steadily); the body's nodes, with the liquid at its contact nodes, fitted on the grid to one rigid motion
 (a clump): it stays wherever it starts (0.52 from Archimedes' depth, 0.90 from 16 mm deeper); the body as a moving
 slip wall for the liquid, pushed only by the liquid's grid-averaged pressure summed over its surface: its weight
-balanced within 0.4 s, but at 0.68-0.72 of its side, sinking, because that pressure alternates from one row of nodes
-to the next near the free surface (a pattern a second's average keeps). The fix has to be in the liquid's pressure.
+balanced within 0.4 s, but at 0.68-0.72 of its side, sinking: it read about 70 Pa below hydrostatics under its face,
+and that pressure alternates from one row of nodes to the next near the free surface (a pattern a second's average
+keeps; whether the body reads that pattern is not yet tested).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
