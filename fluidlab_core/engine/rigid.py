@@ -33,10 +33,9 @@ nodes inside the body's SDF, with the fields never joined and without the exclus
 but 0.68-0.70 at 16 and 24 cells, as liquid creeps into the body's volume (with the exclusion made two-way instead, it
 sinks steadily); the body's nodes, with the liquid at its contact nodes, fitted on the grid to one rigid motion
 (a clump): it stays wherever it starts (0.52 from Archimedes' depth, 0.90 from 16 mm deeper); the body as a moving
-slip wall for the liquid, pushed only by the liquid's grid-averaged pressure summed over its surface: its weight
-balanced within 0.4 s, but at 0.68-0.72 of its side, sinking: it read about 70 Pa below hydrostatics under its face,
-and that pressure alternates from one row of nodes to the next near the free surface (a pattern a second's average
-keeps; whether the body reads that pattern is not yet tested).
+slip wall for the liquid, pushed only by the liquid's grid-averaged pressure summed over its surface (the patch in
+docs/experiments/): a dropped 500 kg/m3 cube floats at 0.50 +- 0.005 over 4 s at 16 cells, a deep start holds 0.54
+and an 800 kg/m3 cube 0.86-0.87 (the read-out is low near the face's edges); the most promising route so far.
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
