@@ -35,7 +35,8 @@ sinks steadily); the body's nodes, with the liquid at its contact nodes, fitted 
 (a clump): it stays wherever it starts (0.52 from Archimedes' depth, 0.90 from 16 mm deeper); the body as a moving
 slip wall for the liquid, pushed only by the liquid's grid-averaged pressure summed over its surface (the patch in
 docs/experiments/): a dropped 500 kg/m3 cube floats at 0.50 +- 0.005 over 4 s at 16 cells, a deep start holds 0.54
-and an 800 kg/m3 cube 0.86-0.87 (the read-out is low near the face's edges); the most promising route so far.
+and an 800 kg/m3 cube 0.86-0.87 (the read-out is low near the face's edges); at 24 cells the 500 kg/m3 cube sits at a
+share of 0.545, tilted. The most promising route so far, not yet converged.
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
