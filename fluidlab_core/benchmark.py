@@ -165,19 +165,16 @@ def _append(path: Path, record: dict):
 
 
 def flattened(curve) -> bool | None:
-    """Whether the last FLAT_WINDOW of the budget lowered the run's loss (the reference loss of its best iterate,
-    `_loss_at`) by less than FLAT_TOLERANCE of it; None for a curve too short to say. A curve that rose over the
+    """Whether the last FLAT_WINDOW of the budget lowered the run's loss (`_loss_at`: the reference loss of its best
+    iterate) by less than FLAT_TOLERANCE of it; None for a curve too short to say. A curve that rose over the
     window has flattened."""
     if len(curve) < 3:
         return None
-    steps = np.array([c[0] for c in curve], float)
-    best = np.array([c[1] for c in curve], float)
-    cut = steps[-1] * (1.0 - FLAT_WINDOW)
-    before = best[steps <= cut]
-    if len(before) == 0:
+    cut = curve[-1][0] * (1.0 - FLAT_WINDOW)
+    if curve[0][0] > cut:  # no checkpoint before the window
         return None
-    ref = before[-1]
-    return bool(ref - best[-1] <= FLAT_TOLERANCE * max(abs(ref), 1e-30))
+    ref = _loss_at(curve, 0, cut)
+    return bool(ref - curve[-1][1] <= FLAT_TOLERANCE * max(abs(ref), 1e-30))
 
 
 def _loss_at(curve, axis: int, at: float) -> float:
@@ -201,10 +198,10 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
         lines.append("A run's loss at a point of its budget is the reference loss of its best iterate (best by the "
                      "optimiser's own loss) at its last checkpoint by then. 'flat': seeds whose loss fell < 1 % over "
                      "the last 20 % of the budget. 'loss @ equal wall': each method's loss by the wall time of the "
-                     "task's fastest method ('not reached': a seed had no checkpoint by then). Wall times include compiling or loading "
-                     "the kernels (the first runs of a sweep compile; later ones load Taichi's cache). 'ms/step': "
-                     "wall time per simulated step of the budget, the optimiser's cost beside the physics (DP's "
-                     "includes its backward pass).")
+                     "task's fastest method ('not reached': a seed had no checkpoint by then). Wall times include "
+                     "compiling or loading the kernels (the first runs of a sweep compile; later ones load Taichi's "
+                     "cache). 'ms/step': wall time per simulated step of the budget, the optimiser's cost beside "
+                     "the physics (DP's includes its backward pass).")
         if now:
             lines.append("'now': the mean final loss of the same trajectories replayed on today's engine "
                          "(--reevaluate, reevaluated.jsonl); the recorded one is what the run measured when it ran.")
@@ -325,8 +322,8 @@ def plot(runs: list[dict], out: Path) -> list[Path]:
 
 def _overview(ok: list[dict], out: Path, plt) -> Path | None:
     """One figure for the README: a panel per task, each method's improvement on the still tool against the share
-    of the budget, (L_still − L) / |L_still| averaged over seeds, L the reference loss of the best iterate (higher is better; 0 is the still tool, 1
-    a loss of zero; it reads the same for Mixing, whose loss is negative)."""
+    of the budget, (L_still − L) / |L_still| averaged over seeds, L the reference loss of the best iterate (higher
+    is better; 0 is the still tool, 1 a loss of zero; it reads the same for Mixing, whose loss is negative)."""
     task_names = [t for t in dict.fromkeys(r["task"] for r in ok)
                   if any(r["task"] == t and r["method"] == STILL for r in ok)]
     if not task_names:

@@ -163,8 +163,8 @@ def test_run_table_columns_line_up_under_a_long_method_name():
 def test_a_run_reports_its_progress_at_each_checkpoint(tmp_path, capsys):
     """A benchmark run can take hours (Pouring's DP about 2.5 h on one core) and its record is written only at its
     end, so the worker prints a line at each checkpoint: the share of the budget, the reference-physics loss of
-    the best iterate so far, and the time. Two CMA-ES generations of 4 on LatteArtStir, checkpoints at half and all of
-    the budget."""
+    the best iterate so far, and the time. Two CMA-ES generations of 4 on LatteArtStir, checkpoints at half and
+    all of the budget."""
     spec = {"task": "LatteArtStir", "method": "cma-es", "seed": 0, "size": "small", "budget": 8 * 75, "arch": "cpu",
             "threads": 1, "min_generations": 2, "checkpoints": 2, "out": str(tmp_path)}
     record = benchmark.run_job(spec)
