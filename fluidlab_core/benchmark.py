@@ -34,6 +34,10 @@ Re-evaluating. `--reevaluate` replays every finished run's trajectory on the eng
 losses to OUT/reevaluated.jsonl (resumable; delete it to re-measure after another engine change); the table then
 shows each method's loss 'now' beside the recorded one, for a sweep whose runs span engine changes.
 
+Merging. `--merge SRC` adds the finished runs of another sweep folder (runs beside other work, or on another
+machine) to OUT with their trajectories, skipping those OUT has; it refuses a folder whose still tool reads another
+loss (other physics). Appends to runs.jsonl hold a lock, so a merge and a running sweep never interleave a line.
+
 Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
 same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
 table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
@@ -157,11 +161,74 @@ def load_runs(path: Path) -> list[dict]:
     return runs
 
 
+class _Locked:
+    """An exclusive lock on runs.jsonl for as long as the `with` block holds it open for appending: sweeps and merges
+    into one folder write whole records and never interleave (POSIX advisory lock; elsewhere, no lock)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+
+    def __enter__(self):
+        self.file = open(self.path, "a")
+        try:
+            import fcntl
+
+            fcntl.flock(self.file.fileno(), fcntl.LOCK_EX)
+        except ImportError:
+            pass
+        return self.file
+
+    def __exit__(self, *exc):
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()  # closing releases the lock
+
+
 def _append(path: Path, record: dict):
-    with open(path, "a") as f:
+    with _Locked(path) as f:
         f.write(json.dumps(record) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+
+
+def merge(src: Path, out: Path, log=print) -> list[dict]:
+    """Add the finished runs of the sweep folder SRC to OUT: each record of SRC/runs.jsonl with a final loss whose key
+    OUT/runs.jsonl lacks is appended to it, after its trajectory and report are copied to the same relative path
+    under OUT. Runs done in separate folders (beside other work, on other machines) join one table this way.
+    Refuses, before writing anything, a SRC whose still tool reads another loss than OUT's for the same task, size
+    and budget (the runs were made on other physics: `--reevaluate` puts them on one engine), and a record whose
+    trajectory file is missing. Returns the records added."""
+    from fluidlab_core.files import write_atomic
+
+    src, out = Path(src), Path(out)
+    src_runs = [r for r in load_runs(src / "runs.jsonl") if "final_loss" in r]
+    if not src_runs:
+        raise ValueError(f"nothing to merge: {src / 'runs.jsonl'} holds no finished run")
+    if src.resolve() == out.resolve():
+        raise ValueError(f"cannot merge {src} into itself")
+    out.mkdir(parents=True, exist_ok=True)
+    with _Locked(out / "runs.jsonl") as f:
+        have = {r["key"]: r for r in load_runs(out / "runs.jsonl") if "final_loss" in r}
+        for r in src_runs:
+            mine = have.get(r["key"])
+            if r["method"] == STILL and mine is not None and not np.isclose(r["final_loss"], mine["final_loss"],
+                                                                            rtol=1e-6, atol=0.0):
+                raise ValueError(f"{r['task']} ({r['size']}, budget {r['budget']}): the still tool's loss is "
+                                 f"{r['final_loss']:.6e} in {src} and {mine['final_loss']:.6e} in {out}; their runs "
+                                 f"were made on different physics (run --reevaluate on both first)")
+        todo = [r for r in src_runs if r["key"] not in have]
+        for r in todo:
+            if r["method"] != STILL and not (src / r.get("trajectory", "")).is_file():
+                raise ValueError(f"{r['key']}: its trajectory {src / r.get('trajectory', '?')} is missing")
+        for r in todo:
+            if r["method"] != STILL:
+                traj = Path(r["trajectory"])
+                for rel in (traj, traj.with_name(traj.stem + ".report.json")):
+                    if (src / rel).is_file():
+                        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+                        write_atomic(out / rel, (src / rel).read_bytes())
+            f.write(json.dumps(r) + "\n")
+            log(f"  merged {r['key']}: final loss {r['final_loss']:.4e}")
+    log(f"merged {len(todo)} runs from {src} into {out} ({len(src_runs) - len(todo)} already there)")
+    return todo
 
 
 def flattened(curve) -> bool | None:
@@ -521,6 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="replay every finished run's trajectory on this engine (OUT/reevaluated.jsonl, resumable; the "
                     "table then shows each method's loss 'now' beside the recorded one), write the report, run nothing "
                     "else")
+    ap.add_argument("--merge", metavar="SRC", default=None,
+                    help="add the finished runs of the sweep folder SRC (and their trajectories) to OUT, skipping "
+                    "those OUT has, then write the report; run nothing")
     ap.add_argument("--report-only", action="store_true",
                     help="write the table, Table 2 and the plots from OUT/runs.jsonl (the runs finished so far, e.g. "
                     "of a sweep still running or cut short) and run nothing")
@@ -607,7 +677,13 @@ def main(argv=None) -> int:
         except ValueError as err:
             print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
             return 2
-    if args.report_only or args.reevaluate:
+    if args.merge:
+        try:
+            merge(Path(args.merge), out)
+        except ValueError as err:
+            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
+            return 2
+    if args.report_only or args.reevaluate or args.merge:
         try:
             report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
         except ValueError as err:

@@ -222,3 +222,59 @@ def _alive(pid: int) -> bool:
             return f.read().rsplit(")", 1)[1].split()[0] != "Z"
     except (FileNotFoundError, ProcessLookupError):
         return False
+
+
+def _fake_run(out: Path, task: str, method: str, seed: int, loss: float, size="medium", budget=100) -> dict:
+    """A finished run's record as a sweep writes it, with its trajectory and report files under OUT."""
+    spec = {"task": task, "method": method, "seed": seed, "size": size, "budget": budget}
+    rec = {**spec, "key": benchmark.run_key(spec), "final_loss": loss, "curve": [[budget, loss, 1.0]], "wall": 1.0,
+           "return": 0.0}
+    if method != benchmark.STILL:
+        rel = Path("trajectories") / task / f"{task}_{method}_seed{seed}_{size}.json"
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_text(json.dumps({"loss": loss}))
+        (out / rel.with_name(rel.stem + ".report.json")).write_text(json.dumps(rec))
+        rec["trajectory"] = str(rel)
+    out.mkdir(parents=True, exist_ok=True)
+    benchmark._append(out / "runs.jsonl", rec)
+    return rec
+
+
+def test_merge_adds_another_folders_runs_once_and_refuses_other_physics(tmp_path, capsys):
+    """Runs done in a separate folder join the main one with their trajectories; a run the main folder has is not
+    added twice; a folder whose still tool reads another loss (its runs were made on other physics) is refused before
+    anything is written; `--merge` then writes the report."""
+    main, side, other = tmp_path / "main", tmp_path / "side", tmp_path / "other"
+    _fake_run(main, "GatheringEasy", "still", 0, 5e-3)
+    _fake_run(main, "GatheringEasy", "dp", 0, 4.6e-3)
+    _fake_run(side, "GatheringEasy", "still", 0, 5e-3)
+    _fake_run(side, "GatheringEasy", "dp", 0, 9.9e-3)  # the main folder's record of this key stays
+    sac = _fake_run(side, "GatheringEasy", "sac", 0, 4.4e-3)
+    with (side / "runs.jsonl").open("a") as f:
+        f.write('{"key": "cut sho')  # a sweep killed while writing that line: skipped
+
+    added = benchmark.merge(side, main, log=lambda *_: None)
+    assert [r["key"] for r in added] == [sac["key"]]
+    runs = {r["key"]: r for r in benchmark.load_runs(main / "runs.jsonl")}
+    assert len(runs) == 3 and runs["GatheringEasy|dp|0|medium|100"]["final_loss"] == 4.6e-3
+    assert json.loads((main / sac["trajectory"]).read_text()) == {"loss": 4.4e-3}
+    assert (main / sac["trajectory"]).with_name(Path(sac["trajectory"]).stem + ".report.json").is_file()
+    assert benchmark.merge(side, main, log=lambda *_: None) == []  # again: nothing new
+
+    _fake_run(other, "GatheringEasy", "still", 0, 5.1e-3)
+    _fake_run(other, "GatheringEasy", "pods", 0, 4.8e-3)
+    before = (main / "runs.jsonl").read_text()
+    with pytest.raises(ValueError, match=r"still tool's loss is 5.100000e-03 in .*other and 5.000000e-03 in .*main; "
+                                         r"their runs were made on different physics"):
+        benchmark.merge(other, main, log=lambda *_: None)
+    assert (main / "runs.jsonl").read_text() == before
+    assert not (main / "trajectories" / "GatheringEasy" / "GatheringEasy_pods_seed0_medium.json").exists()
+
+    (side / sac["trajectory"]).unlink()
+    fresh = tmp_path / "fresh"
+    with pytest.raises(ValueError, match=r"GatheringEasy\|sac\|0\|medium\|100: its trajectory .* is missing"):
+        benchmark.merge(side, fresh, log=lambda *_: None)
+    assert benchmark.load_runs(fresh / "runs.jsonl") == []
+
+    assert benchmark.main(["--merge", str(other), "--out", str(main)]) == 2
+    assert "different physics" in capsys.readouterr().err
