@@ -30,8 +30,9 @@ layer-to-layer alternation of J (a linear fit of J over the body still holds it 
 body the liquid's push at its contact nodes directly (a frictionless wall-like contact law, no stress in the body): right
 from rest at Archimedes' depth (0.51-0.53), but a landing cube then stops far too high (0.27-0.30); the same law at the
 nodes inside the body's SDF, with the fields never joined and without the exclusion: one depth from any start (no band),
-but 0.68-0.70 at 16 and 24 cells, as liquid creeps into the body's volume (with the exclusion made two-way instead, it
-sinks steadily); the body's nodes, with the liquid at its contact nodes, fitted on the grid to one rigid motion
+but 0.68-0.70 at 16 and 24 cells: those nodes take only their share of the partition of unity at the face (about 0.75
+of the liquid's pressure force measured at 16 cells, where the face reads hydrostatic pressure), the rest goes into
+the exclusion, which does not act back (made two-way, the body sinks steadily at balanced force); the body's nodes, with the liquid at its contact nodes, fitted on the grid to one rigid motion
 (a clump): it stays wherever it starts (0.52 from Archimedes' depth, 0.90 from 16 mm deeper); the body as a moving
 slip wall for the liquid, pushed only by the liquid's grid-averaged pressure summed over its surface (the patch in
 docs/experiments/): a dropped 500 kg/m3 cube floats at 0.50 +- 0.005 over 4 s at 16 cells, a deep start holds 0.54
