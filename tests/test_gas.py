@@ -574,7 +574,7 @@ def test_fractional_tool_faces_move_the_flow_continuously_and_keep_it_divergence
     """A cylinder tool moved across a stream in steps of Δx/64 and Δx/512. With whole cells (the default) the flow
     after one step stays put and then jumps as a cell centre crosses the surface (0.9–1.0 m/s in a stream of
     1 m/s at some face); with face fractions it changes at every step, by an amount that falls with the step
-    (measured max change 0.032 and 0.0042 m/s: about linear, away from a face that lies in a tangent plane of
+    (measured max change 0.025 and 0.0031 m/s: about linear, away from a face that lies in a tangent plane of
     the cylinder, whose open share goes as the square root of the shift). The stored velocity is each face's
     flux velocity w u + (1 − w) u_solid, so its plain divergence vanishes to the solve's tolerance in every cell
     with an open face."""
