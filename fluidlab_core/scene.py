@@ -292,7 +292,7 @@ class Scene:
                 advection: str = "maccormack", limiter: str = "cell", tolerance: float = 1e-6,
                 max_iterations: int = 200, on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
                 statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
-                particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1):
+                particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1, tool_faces: str = "cells"):
         """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
         equations). A scene with gas and no particles builds a GasSimulator (fluidlab_core/gas_simulator.py).
 
@@ -313,8 +313,12 @@ class Scene:
         particles_block: which solids the gas flows around (particles: MPM cells at least half full move the gas
         with them); particle_drag: 1/s, the rate at which the gas drags particles towards its velocity (0: none),
         on the particle bodies named in drag_bodies (default all), which ride in the gas and do not block it:
-        engine/gas_coupling.py."""
-        from fluidlab_core.gas import ADVECTIONS, LIMITERS, GasSpec, _number, parse_walls
+        engine/gas_coupling.py. tool_faces: how a blocking tool enters the pressure projection: "cells" (a cell
+        whose centre is inside the tool is solid, so the flow's boundary moves a whole cell at a time as the tool
+        moves) or "fractions" (each cell face is open by the share of its area outside the tool, Batty et al.
+        2007, so the boundary and the flux through it move continuously with the tool's pose).
+        """
+        from fluidlab_core.gas import ADVECTIONS, LIMITERS, TOOL_FACES, GasSpec, _number, parse_walls
 
         if self.gas is not None:
             raise ValueError("the scene already has gas (add_gas once)")
@@ -337,6 +341,8 @@ class Scene:
             raise ValueError(f"limiter must be one of {LIMITERS}, got {limiter!r}")
         if on_fail not in ("raise", "warn"):
             raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
+        if tool_faces not in TOOL_FACES:
+            raise ValueError(f"tool_faces must be one of {TOOL_FACES}, got {tool_faces!r}")
         if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
             raise ValueError(f"gas substeps must be an integer >= 1, got {substeps!r}")
         if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -362,6 +368,7 @@ class Scene:
             advection=advection, limiter=limiter, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
             max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
             statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
+            tool_faces=tool_faces,
             particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every),
             drag_bodies=None if drag_bodies is None else tuple(str(b) for b in drag_bodies))
         return self.gas

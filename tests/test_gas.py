@@ -543,3 +543,108 @@ def test_gradients_through_the_gas_particle_coupling_match_finite_differences(f6
         rel = abs(fd - an) / max(abs(fd), 1e-12)
         report("gas-particle coupling gradient", wrt=name, finite_difference=fd, backward=an, relative_error=rel)
         assert rel < 5e-3, name
+
+
+# --- tools entering by face fractions (tool_faces="fractions") ------------------------------------------------------
+def _rotor_slab(tool_faces):
+    """The Magnus test's stream past a cylinder tool (D = 8 cells), shorter: 6 D × 4 D."""
+    Dc, U, D = 8, 1.0, 0.1
+    dx = D / Dc
+    nx, ny = 6 * Dc, 4 * Dc
+    scene = slab(nx, ny, dx, 0.5 * dx / U, {"x-": (U, 0.0, 0.0), "x+": "open"}, viscosity=U * D / 200,
+                 max_cfl=2.5, tool_faces=tool_faces)
+    scene.add_tool(fl.Cylinder((0, 0, 0), D / 2, 1.0), pose=(2 * D, 0.5 * ny * dx, 0.5 * dx, 0, 0, 0, 1),
+                   name="rotor", max_speed=1.5 * U)
+    sim = scene.build()
+    start = sim.get_state()
+    start.gas.velocity[0][:] = U
+    return sim, start, dx
+
+
+def _after_one_step(sim, start, dy):
+    """u_y (nx, ny+1) after one step from a uniform stream, the tool moved by dy (m) across the stream first."""
+    s = start.copy()
+    s.tool_position = np.asarray(start.tool_position, dtype=float).reshape(-1, 3) + [0.0, dy, 0.0]
+    sim.set_state(s)
+    sim.step(np.zeros(6))
+    return sim.gas_state().velocity[1][:, :, 0].copy()
+
+
+def test_fractional_tool_faces_move_the_flow_continuously_and_keep_it_divergence_free():
+    """A cylinder tool moved across a stream in steps of Δx/64 and Δx/512. With whole cells (the default) the flow
+    after one step stays put and then jumps as a cell centre crosses the surface (0.9–1.0 m/s in a stream of
+    1 m/s at some face); with face fractions it changes at every step, by an amount that falls with the step
+    (measured max change 0.025 and 0.0031 m/s: about linear, away from a face that lies in a tangent plane of
+    the cylinder, whose open share goes as the square root of the shift). The stored velocity is each face's
+    flux velocity w u + (1 − w) u_solid, so its plain divergence vanishes to the solve's tolerance in every cell
+    with an open face."""
+    report_rows = {}
+    for mode in ("cells", "fractions"):
+        sim, start, dx = _rotor_slab(mode)
+        changes = {}
+        for step in (dx / 64, dx / 512):
+            fields = [_after_one_step(sim, start, dx / 4 + k * step) for k in range(5)]
+            changes[step] = max(np.abs(b - a).max() for a, b in zip(fields, fields[1:]))
+        report_rows[mode] = changes
+        if mode == "cells":
+            jumps = [np.abs(_after_one_step(sim, start, k * dx / 8) - _after_one_step(sim, start, (k + 1) * dx / 8)).max()
+                     for k in range(8)]
+            assert max(jumps) > 0.5 and min(jumps) < 1e-9, jumps  # stays put, then jumps
+        else:
+            assert changes[dx / 64] < 0.1 and changes[dx / 512] < 0.3 * changes[dx / 64], changes
+            _after_one_step(sim, start, 0.3 * dx)
+            rep = sim.solver.poisson.last
+            open_cells = sim.solver.poisson.flags[0].to_numpy() == 1
+            ux, uy, uz = sim.gas_state().velocity
+            div = (ux[1:] - ux[:-1]) + (uy[:, 1:] - uy[:, :-1]) + (uz[:, :, 1:] - uz[:, :, :-1])
+            assert np.abs(div[open_cells]).max() <= 2e-6 * rep["rhs_norm"], (np.abs(div[open_cells]).max(), rep)
+            w = [f.to_numpy() for f in sim.solver.face_w]
+            assert any(((wd > 0.05) & (wd < 0.95)).any() for wd in w)  # the cylinder cuts faces
+    report("tool faces", **{f"{m}_max_change_step_dx_{int(round(dx / s))}": v
+                            for m, ch in report_rows.items() for s, v in ch.items()})
+
+
+def test_gradients_with_fractional_tool_faces_match_finite_differences(f64):
+    """float64, a 10 × 8 × 6 room with an inflow wall, an open wall and a box paddle (a tool that blocks the gas
+    by face fractions) moving and turning through it, 4 steps, a loss on the flow at three sensors. The gradient
+    with respect to the actions and the paddle's start position includes the faces' open shares moving with
+    the paddle: through the blend w u + (1 − w) u_solid and through the operator L = D W Dᵀ (w̄_f = g_f ((Dᵀ y')_f −
+    ḡ_f), g the forward solve's Dᵀ y, y' the adjoint's), and through each share's SDF corners. Against central
+    differences within 5e-3."""
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.5, 0.4, 0.3), grid_res=10, dt=0.03)
+    scene.add_gas(resolution=10, walls={"x-": (0.2, 0, 0), "x+": "open"}, viscosity=1e-3, tolerance=1e-12,
+                  max_iterations=500, tool_faces="fractions")
+    scene.add_tool(fl.Box((-0.06, -0.04, -0.05), (0.06, 0.04, 0.05)), pose=(0.27, 0.21, 0.14, 0, 0, 0.2, 0.98),
+                   name="paddle", action_mask=(1, 1, 0, 0, 0, 1), max_speed=0.3)
+    sim = scene.build(requires_grad=True)
+    rng = np.random.default_rng(1)
+    c = sim.cell_centers()
+    s0 = sim.get_state()
+    s0.gas.scalars[0] = 293.15 + 2.0 * np.sin(7 * c[..., 0] + 3 * c[..., 1]) * np.cos(5 * c[..., 2])
+    n = 4
+    acts = np.zeros((n, 6))
+    acts[:, 0], acts[:, 1] = 0.1 * rng.standard_normal(n), 0.1 * rng.standard_normal(n)
+    acts[:, 5] = 0.6 + 0.3 * rng.standard_normal(n)
+    sensors = np.array([[0.1, 0.1, 0.1], [0.4, 0.3, 0.1], [0.42, 0.12, 0.2]])
+    loss = losses.GasSensors(sensors, "temperature", target=280.0, power=2)
+    sim.set_state(s0)
+    res = sim.rollout(acts, loss, grad=True)
+
+    def run(state=s0, actions=acts):
+        sim.set_state(state)
+        return sim.rollout(actions, loss).loss
+
+    eps = 1e-6
+    d = rng.standard_normal(acts.shape) * [1, 1, 0, 0, 0, 1]
+    dp = np.array([1.0, -0.5, 0.3])
+    checks = {
+        "actions": ((run(actions=acts + eps * d) - run(actions=acts - eps * d)) / (2 * eps),
+                    float((res.grad_actions[:, 0] * d).sum())),
+        "paddle start position": ((run(s0.replace(tool_position=s0.tool_position + eps * dp))
+                                   - run(s0.replace(tool_position=s0.tool_position - eps * dp))) / (2 * eps),
+                                  float(res.grad_tool_position[0] @ dp)),
+    }
+    for name, (fd, an) in checks.items():
+        rel = abs(fd - an) / max(abs(fd), 1e-12)
+        report("gas gradient, fractional tool faces", wrt=name, finite_difference=fd, backward=an, relative_error=rel)
+        assert rel < 5e-3, name

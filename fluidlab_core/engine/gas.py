@@ -33,7 +33,16 @@ One gas step of Δt (stages in order, each writing a field of its own so that it
                  cell to the solver's tolerance; the pressure is p = −ρ Δx y / Δt (Pa)
 
 where ũ is u with the solid faces set to the solids' velocity (no flow through a solid: u·n = v_s·n), closed
-walls to 0, inflow walls to their velocity; open walls have p = 0 outside. This is the scheme of Stam (1999)
+walls to 0, inflow walls to their velocity; open walls have p = 0 outside.
+
+Tools by face fractions (spec.tool_faces == "fractions"; Batty, Bertails & Bridson 2007): each face has an open
+share w ∈ [0, 1] (face_weights: the area outside the tools, from their SDF at the face's corners and centre), and
+
+    projection   VB = w ũ + (1 − w) u_s,  L y = D VB with L = D W Dᵀ,  u = VB − W Dᵀ y
+
+so the stored u is each face's flux velocity, D u = 0 on every cell with an open face, and u moves continuously
+with the tools. Its adjoint: VB̄ = ḡ − Dᵀ y′ with L y′ = D W ḡ, and w̄ = g ⊙ (Dᵀ y′ − ḡ) with g = Dᵀ y of the
+forward solve (L depends on W); the shares' own gradient comes from face_weights.grad. This is the scheme of Stam (1999)
 on a MAC grid (Fedkiw, Stam & Jensen 2001 for buoyancy and vorticity confinement); FluidLab (Xian et al. 2023)
 uses the same splitting with a Jacobi pressure solve.
 
@@ -176,7 +185,15 @@ class GasSolver:
                                 for w in spec.walls)
         self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
                                for w in spec.walls)
-        self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind])
+        # tools entering the projection by face fractions (spec.tool_faces == "fractions"): each face's open share
+        # (face_w, no gradient: the shares are held fixed in the adjoint) and the blended velocity VB = w ũ + (1 − w)
+        # u_solid whose divergence the projection removes
+        self.fractional = spec.tool_faces == "fractions" and spec.tools_block and bool(self.tool_specs)
+        self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind], weighted=self.fractional)
+        if self.fractional:
+            self.face_w = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.VB = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.face_g = [ti.field(real, shape=self.face_shapes[d]) for d in range(3)]  # Dᵀ y of the forward solve
         self.nu = ti.field(real, shape=())  # kinematic viscosity (m²/s), a field so that it can change (set_viscosity)
         self.bad = ti.field(ti.i32, shape=())
         self.max_speed = ti.field(real, shape=())
@@ -392,6 +409,124 @@ class GasSolver:
                 v = 0.5 * v
         return fixed, v[d]
 
+    @ti.func
+    def _tool_phi(self, x):
+        """The signed distance (m) from x to the nearest blocking tool (negative inside), and that tool's index."""
+        phi = 1e9
+        which = 0
+        for t in ti.static(range(len(self._tool_sdf))):
+            q = self.tool_R[t].transpose() @ (x - self.tool_p[t])
+            f = self._tool_sdf[t](q)
+            if f < phi:
+                phi = f
+                which = t
+        return phi, which
+
+    @ti.func
+    def _triangle_share(self, a, b, c):
+        """The share of a triangle where a linear function with vertex values a, b, c is positive."""
+        n_pos = ti.cast(a > 0.0, ti.i32) + ti.cast(b > 0.0, ti.i32) + ti.cast(c > 0.0, ti.i32)
+        share = 0.0
+        if n_pos == 3:
+            share = 1.0
+        elif n_pos == 1:  # the positive corner's triangle: p² / ((p − q)(p − r))
+            pv, q, r = a, b, c
+            if b > 0.0:
+                pv, q, r = b, a, c
+            elif c > 0.0:
+                pv, q, r = c, a, b
+            share = pv * pv / ((pv - q) * (pv - r))
+        elif n_pos == 2:  # all but the negative corner's triangle
+            nv, q, r = a, b, c
+            if b <= 0.0:
+                nv, q, r = b, a, c
+            elif c <= 0.0:
+                nv, q, r = c, a, b
+            share = 1.0 - nv * nv / ((nv - q) * (nv - r))
+        return share
+
+    @ti.kernel
+    def face_weights(self):
+        """The open share w of every face (fractional tools): 1 or 0 on the domain's walls (open or not), 0 next to
+        a static or particle cell, else the share of the face's area outside the tools, from the tools' SDF at its
+        four corners and its centre (four triangles, φ linear on each: Bridson's area fraction; continuous in
+        the tools' poses). Shares under 1e-3 are taken as 0 (they would only slow the solve)."""
+        shape = ti.static(self.shape)
+        for d in ti.static(range(3)):
+            a1, a2 = ti.static((d + 1) % 3, (d + 2) % 3)
+            for I in ti.grouped(self.face_w[d]):
+                w = 1.0
+                if I[d] == 0:
+                    w = 1.0 if ti.static(self._wall_kind[2 * d] == OPEN) else 0.0
+                elif I[d] == shape[d]:
+                    w = 1.0 if ti.static(self._wall_kind[2 * d + 1] == OPEN) else 0.0
+                else:
+                    lo_kind = self.solid[self._lo_cell(d, I)]
+                    hi_kind = self.solid[self._hi_cell(d, I)]
+                    if lo_kind == 1 or lo_kind == 3 or hi_kind == 1 or hi_kind == 3:
+                        w = 0.0
+                    else:
+                        x = self._face_pos(d, I)
+                        h = 0.5 * self.dx
+                        e1 = h * ti.Vector.unit(3, a1, self.real)
+                        e2 = h * ti.Vector.unit(3, a2, self.real)
+                        pc, _ = self._tool_phi(x)
+                        p0, _ = self._tool_phi(x - e1 - e2)
+                        p1, _ = self._tool_phi(x + e1 - e2)
+                        p2, _ = self._tool_phi(x + e1 + e2)
+                        p3, _ = self._tool_phi(x - e1 + e2)
+                        w = 0.25 * (self._triangle_share(pc, p0, p1) + self._triangle_share(pc, p1, p2)
+                                    + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
+                        if w < 1e-3:
+                            w = 0.0
+                self.face_w[d][I] = w
+
+    @ti.kernel
+    def _weights_to_poisson(self):
+        """The pressure solve's cells and face shares: a cell is an unknown when any of its faces is open."""
+        for I in ti.grouped(self.solid):
+            total = ti.f64(0.0)
+            for d in ti.static(range(3)):
+                lo = self.face_w[d][I]
+                hi = self.face_w[d][I + ti.Vector.unit(3, d, ti.i32)]
+                self.poisson.w6[I][2 * d] = ti.cast(lo, ti.f64)
+                self.poisson.w6[I][2 * d + 1] = ti.cast(hi, ti.f64)
+                total += ti.cast(lo + hi, ti.f64)
+            self.poisson.flags[0][I] = ti.cast(FLUID if total > 0.0 else SOLID, ti.i8)
+
+    @ti.func
+    def _face_solid_velocity(self, d: ti.template(), I):
+        """The velocity (axis d) a face of fractional-tool mode takes where it is shut: a wall's, a static's or
+        particles' (as _face_solid), else the nearest tool's rigid motion at the face's centre."""
+        shape = ti.static(self.shape)
+        us = 0.0
+        if I[d] == 0:
+            if ti.static(self._wall_kind[2 * d] == INFLOW):
+                us = self._wall_vel[2 * d][d]
+        elif I[d] == shape[d]:
+            if ti.static(self._wall_kind[2 * d + 1] == INFLOW):
+                us = self._wall_vel[2 * d + 1][d]
+        else:
+            lo_cell = self._lo_cell(d, I)
+            hi_cell = self._hi_cell(d, I)
+            lo_kind = self.solid[lo_cell]
+            hi_kind = self.solid[hi_cell]
+            lo_other = lo_kind == 1 or lo_kind == 3
+            hi_other = hi_kind == 1 or hi_kind == 3
+            if lo_other and hi_other:
+                us = 0.5 * (self.solid_v[lo_cell][d] + self.solid_v[hi_cell][d])
+            elif lo_other:
+                us = self.solid_v[lo_cell][d]
+            elif hi_other:
+                us = self.solid_v[hi_cell][d]
+            else:
+                x = self._face_pos(d, I)
+                _, t = self._tool_phi(x)
+                for k in ti.static(range(len(self._tool_sdf))):
+                    if t == k:
+                        us = (self.tool_v[k] + self.tool_w[k].cross(x - self.tool_p[k]))[d]
+        return us
+
     # --- stage kernels ---------------------------------------------------------------------------------------
     @ti.kernel
     def boundaries(self):
@@ -470,7 +605,12 @@ class GasSolver:
         = 0 the blend is the identity, and w's derivative is 0 as well), faces at solids take their velocity."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[a][d]):
-                fixed, vs = self._face_solid(d, I)
+                fixed, vs = 0, 0.0
+                if ti.static(self.fractional):  # shut faces only: a partly open one keeps its flux velocity
+                    if self.face_w[d][I] == 0.0:
+                        fixed, vs = 1, self._face_solid_velocity(d, I)
+                else:
+                    fixed, vs = self._face_solid(d, I)
                 u = self.V[a][d][I]
                 if fixed:
                     u = vs
@@ -716,16 +856,28 @@ class GasSolver:
         """Stage b = stage a with the faces at solids and walls set to their velocity (ũ)."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.V[b][d]):
-                fixed, vs = self._face_solid(d, I)
-                u = self.V[a][d][I]
-                if fixed:
-                    u = vs
-                self.V[b][d][I] = u
+                if ti.static(self.fractional):  # shut faces take the solid's velocity; VB blends by the open share
+                    w = self.face_w[d][I]
+                    us = self._face_solid_velocity(d, I)
+                    u = self.V[a][d][I]
+                    if w == 0.0:
+                        u = us
+                    self.V[b][d][I] = u
+                    self.VB[d][I] = w * u + (1.0 - w) * us
+                else:
+                    fixed, vs = self._face_solid(d, I)
+                    u = self.V[a][d][I]
+                    if fixed:
+                        u = vs
+                    self.V[b][d][I] = u
 
     @ti.func
-    def _open_face(self, d: ti.template(), I) -> ti.i32:
-        """Whether face I of axis d is free (M_f = 1): both sides gas, or gas and an open wall."""
+    def _open_face(self, d: ti.template(), I):
+        """M_f of face I of axis d: 1 where it is free (both sides gas, or gas and an open wall), else 0; with
+        fractional tools its open share w."""
         shape = ti.static(self.shape)
+        if ti.static(self.fractional):
+            return self.face_w[d][I]
         lo_cell = self._lo_cell(d, I)
         hi_cell = self._hi_cell(d, I)
         ok = 1
@@ -742,7 +894,7 @@ class GasSolver:
             if I[d] < shape[d]:
                 if self.solid[hi_cell] != 0:
                     ok = 0
-        return ok
+        return ti.cast(ok, self.real)
 
     @ti.kernel
     def divergence(self, f0: ti.template(), f1: ti.template(), f2: ti.template(), masked: ti.template()):
@@ -750,7 +902,7 @@ class GasSolver:
         `masked`: of M u, the open faces only)."""
         for I in ti.grouped(self.poisson.b):
             v = 0.0
-            if self.solid[I] == 0:
+            if self._is_unknown(I):
                 for d in ti.static(range(3)):
                     f = ti.static((f0, f1, f2)[d])
                     hi = I + ti.Vector.unit(3, d, ti.i32)
@@ -771,12 +923,20 @@ class GasSolver:
         y_lo = 0.0
         y_hi = 0.0
         if I[d] > 0:
-            if self.solid[lo_cell] == 0:
+            if self._is_unknown(lo_cell):
                 y_lo = ti.cast(self.poisson.x[lo_cell], self.real)
         if I[d] < shape[d]:
-            if self.solid[hi_cell] == 0:
+            if self._is_unknown(hi_cell):
                 y_hi = ti.cast(self.poisson.x[hi_cell], self.real)
         return y_lo - y_hi
+
+    @ti.func
+    def _is_unknown(self, I):
+        """Whether cell I has a pressure: a gas cell, or (fractional tools) any cell with an open face."""
+        out = self.solid[I] == 0
+        if ti.static(self.fractional):
+            out = self.poisson.flags[0][I] == FLUID
+        return out
 
     @ti.kernel
     def subtract_gradient(self, src0: ti.template(), src1: ti.template(), src2: ti.template(),
@@ -790,6 +950,12 @@ class GasSolver:
                 if ti.static(masked):
                     g *= self._open_face(d, I)
                 dst[I] = src[I] - g
+
+    @ti.kernel
+    def _store_dt_y(self):
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.face_g[d]):
+                self.face_g[d][I] = self._dt_y(d, I)
 
     @ti.kernel
     def copy_stage(self, a: ti.template(), b: ti.template(), qa: ti.template(), qb: ti.template()):
@@ -821,7 +987,14 @@ class GasSolver:
         self.boundaries()
         if particles is not None:
             particles()
-        if self._moving_solids or not self._flags_ready:
+        if self.fractional:  # the faces' open shares move with the tools every step
+            self.face_weights()
+            self._weights_to_poisson()
+            w = [f.to_numpy() for f in self.face_w]
+            links = [w[d].take(np.arange(1, self.shape[d]), axis=d) > 0.0 for d in range(3)]
+            self.poisson.update_flags(links=links)
+            self._flags_ready = True
+        elif self._moving_solids or not self._flags_ready:
             self._flags_to_poisson()
             self.poisson.update_flags()
             self._flags_ready = True
@@ -849,11 +1022,12 @@ class GasSolver:
     def project(self, dt: float, step: int):
         """S4 = S3T − M Dᵀ y, L y = D S3T; returns the solve's report (raises or warns when it misses)."""
         V = self.V[S3T]
-        self.divergence(V[0], V[1], V[2], False)
+        B = self.VB if self.fractional else V  # the flux the solve makes divergence-free
+        self.divergence(B[0], B[1], B[2], False)
         rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
         self._check_solve(rep, step, "pressure")
         W = self.V[S4]
-        self.subtract_gradient(V[0], V[1], V[2], W[0], W[1], W[2], True)
+        self.subtract_gradient(B[0], B[1], B[2], W[0], W[1], W[2], True)
         return rep
 
     def _check_solve(self, rep, step, what):
@@ -927,6 +1101,11 @@ class GasSolver:
             for I in ti.grouped(qlo):
                 qlo.grad[I] = 0.0
                 qhi.grad[I] = 0.0
+        if ti.static(self.fractional):
+            for d in ti.static(range(3)):
+                for I in ti.grouped(self.VB[d]):
+                    self.VB[d].grad[I] = 0.0
+                    self.face_w[d].grad[I] = 0.0
         for I in ti.grouped(self.omega):
             self.omega.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.f_vort.grad[I] = ti.Vector([0.0, 0.0, 0.0])
@@ -971,7 +1150,15 @@ class GasSolver:
         for d in ti.static(range(3)):
             gin = ti.static((g0, g1, g2)[d])
             for I in ti.grouped(gin):
-                self.V[S3T][d].grad[I] = ti.cast(gin[I], self.real) - self._dt_y(d, I)
+                if ti.static(self.fractional):
+                    # S4 = VB − W Dᵀ L(W)⁺ D VB: to VB, ḡ − Dᵀ y'; to each share w_f (L depends on W too),
+                    # g_f ((Dᵀ y')_f − ḡ_f) with g = Dᵀ y of the forward solve (face_g) and y' = L⁺ D W ḡ
+                    dty = self._dt_y(d, I)
+                    gi = ti.cast(gin[I], self.real)
+                    self.VB[d].grad[I] = gi - dty
+                    self.face_w[d].grad[I] += self.face_g[d][I] * (dty - gi)
+                else:
+                    self.V[S3T][d].grad[I] = ti.cast(gin[I], self.real) - self._dt_y(d, I)
         for I in ti.grouped(gq):
             self.Q[S2].grad[I] += ti.cast(gq[I], self.real)
 
@@ -984,6 +1171,11 @@ class GasSolver:
         self.prepare_boundaries(particles)
         self.forward_stages(dt)
         self.clear_grads()
+        if self.fractional:  # the forward solve again: its Dᵀ y carries the gradient to the face shares
+            self.divergence(self.VB[0], self.VB[1], self.VB[2], False)
+            rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
+            self._check_solve(rep, step, "pressure (backward)")
+            self._store_dt_y()
         # projection adjoint: ũ̄ = ḡ − Dᵀ Π L⁺ D M ḡ
         self.divergence(carry_v[0], carry_v[1], carry_v[2], True)
         rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
@@ -1011,6 +1203,8 @@ class GasSolver:
             self.source_frames.grad()
         if self._tool_sdf:
             self.boundaries.grad()
+        if self.fractional:  # every reader of the shares (override, the projection) is behind us
+            self.face_weights.grad()
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
 
     def backward_substeps(self, starts, dt: float, first_step: int, carry_v, carry_q, particles=None,

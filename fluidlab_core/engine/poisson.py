@@ -12,6 +12,10 @@ open wall (y + const solves as well), and L y = r is then solvable only if Σ_re
 right-hand side compatible region by region (subtracting each closed region's mean; the amount is reported)
 and returns the solution of least... any solution: the pressure's constant does not change the velocity.
 
+Fractional faces (`weighted=True`, the gas solver's tools by face fractions): (L y)_c = Σ_f w_f (y_c − y_n(f)) with
+w_f ∈ [0, 1] each face's open share (w6, per cell and face), L = D W Dᵀ; a cell is an unknown when any face is
+open. The fine level uses these weights; the coarse levels keep whole cells, which only the preconditioner sees.
+
 Preconditioner: one V-cycle of geometric multigrid (McAdams, Sifakis & Teran 2010, "A parallel multigrid Poisson
 solver for fluids simulation on large grids"): levels of half the resolution (a coarse cell is fluid when any
 of its children is), red-black Gauss-Seidel smoothing (pre-smoothing red then black, post-smoothing black then
@@ -64,6 +68,32 @@ def _operator(masks, diags):
     return diag_off
 
 
+def _weighted_operator(w6):
+    """The ti.func (diag, Σ w y over neighbours) of cell I with fractional faces (the fine level when the gas
+    solver's tools enter by face fractions): w6[I][2d + s] is the open share of cell I's face on axis d, side s
+    (0 for a face to a solid or a closed wall; an open wall's share counts in the diagonal only, y = 0 beyond it).
+    L = D W Dᵀ stays symmetric: the gas solver writes the same share into both cells of a face."""
+
+    shape = tuple(w6.shape)
+
+    @ti.func
+    def diag_off(y: ti.template(), I):
+        diag = ti.f64(0.0)
+        off = ti.f64(0.0)
+        for d in ti.static(range(3)):
+            for s in ti.static((0, 1)):
+                wf = w6[I][2 * d + s]
+                J = I + (2 * s - 1) * ti.Vector.unit(3, d, ti.i32)
+                inside = J[d] >= 0 and J[d] < shape[d]
+                J[d] = ti.min(ti.max(J[d], 0), shape[d] - 1)
+                diag += wf
+                if inside:
+                    off += wf * y[J]
+        return diag, off
+
+    return diag_off
+
+
 def _smoother(flags, r, z, diag_off):
     shape = tuple(z.shape)
     half = (shape[0], shape[1], -(-shape[2] // 2))
@@ -110,6 +140,32 @@ def _make_masks(flags, masks, diags, open_walls):
     return make
 
 
+def _label_linked(fluid: np.ndarray, links) -> tuple[np.ndarray, int]:
+    """Connected fluid regions (labels 1..n, 0 outside the fluid) where neighbours connect only through open faces
+    (ndimage.label's labelling, with the links as the graph's edges)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    index = np.full(fluid.shape, -1, dtype=np.int64)
+    index[fluid] = np.arange(int(fluid.sum()))
+    rows, cols = [], []
+    for d in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[d], hi[d] = slice(0, -1), slice(1, None)
+        a, b = index[tuple(lo)], index[tuple(hi)]
+        ok = links[d] & (a >= 0) & (b >= 0)
+        rows.append(a[ok])
+        cols.append(b[ok])
+    n_cells = int(fluid.sum())
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n_cells, n_cells))
+    n, comp = connected_components(graph, directed=False)
+    labels = np.zeros(fluid.shape, dtype=np.int32)
+    labels[fluid] = comp + 1
+    return labels, int(n)
+
+
 @ti.data_oriented
 class PoissonSolver:
     """MGPCG for L y = r on a grid of `shape` cells (see the module docstring).
@@ -117,7 +173,8 @@ class PoissonSolver:
     open_walls: 6 bools, (x−, x+, y−, y+, z−, z+): which domain walls are Dirichlet (y = 0 outside).
     The fine level's cell flags (`flags[0]`, FLUID or SOLID) are written by the gas solver before `solve`."""
 
-    def __init__(self, shape, open_walls, pre_sweeps: int = 2, post_sweeps: int = 2, bottom_sweeps: int = 30):
+    def __init__(self, shape, open_walls, pre_sweeps: int = 2, post_sweeps: int = 2, bottom_sweeps: int = 30,
+                 weighted: bool = False):
         self.shape = tuple(int(n) for n in shape)
         self.open_walls = tuple(bool(b) for b in open_walls)
         self.shapes = level_shapes(self.shape)
@@ -141,7 +198,13 @@ class PoissonSolver:
         self.res = [ti.field(f64, shape=sh) for sh in self.shapes[:-1]]  # the level's residual r − L z
         self.masks = [ti.field(ti.i8, shape=sh) for sh in self.shapes]  # gas neighbours, a bit per face
         self.diags = [ti.field(ti.i8, shape=sh) for sh in self.shapes]  # open faces per cell
-        self._ops = [_operator(self.masks[lv], self.diags[lv]) for lv in range(self.n_levels)]
+        # weighted: the fine level's faces open by fractions (w6, written by the gas solver with the flags); the
+        # coarser levels keep whole cells (a coarse cell is fluid when any child is), an approximation that only
+        # the preconditioner sees, so CG still solves the fine operator
+        self.weighted = bool(weighted)
+        self.w6 = ti.Vector.field(6, f64, shape=self.shape) if self.weighted else None
+        self._ops = [_weighted_operator(self.w6) if lv == 0 and self.weighted else
+                     _operator(self.masks[lv], self.diags[lv]) for lv in range(self.n_levels)]
         self._make_masks = [_make_masks(self.flags[lv], self.masks[lv], self.diags[lv], self.open_walls)
                             for lv in range(self.n_levels)]
         self._down = [self._make_down(lv) for lv in range(self.n_levels - 1)]
@@ -329,9 +392,11 @@ class PoissonSolver:
         self._update, self._rz_dot, self._next_direction, self.apply = update, rz_dot, next_direction, apply_to
 
     # --- compatibility on closed regions ----------------------------------------------------------------------
-    def update_flags(self, flags: np.ndarray | None = None):
+    def update_flags(self, flags: np.ndarray | None = None, links=None):
         """After flags[0] changed: coarsen them and label the closed fluid regions (those touching no open
-        wall), whose right-hand sides must sum to zero."""
+        wall), whose right-hand sides must sum to zero. links: with fractional faces, three boolean arrays
+        ((nx−1, ny, nz), (nx, ny−1, nz), (nx, ny, nz−1)) saying which faces between neighbouring cells are open at
+        all; two fluid cells whose shared face is shut are not connected through it."""
         from scipy import ndimage
 
         for lv in range(self.n_levels - 1):
@@ -340,11 +405,14 @@ class PoissonSolver:
             self._make_masks[lv]()
         if flags is None:
             flags = self.flags[0].to_numpy()
-        key = flags.tobytes()
+        key = flags.tobytes() + (b"" if links is None else b"".join(np.packbits(k).tobytes() for k in links))
         if key == self._regions_for:
             return
         self._regions_for = key
-        labels, n = ndimage.label(flags == FLUID)
+        if links is None:
+            labels, n = ndimage.label(flags == FLUID)
+        else:
+            labels, n = _label_linked(flags == FLUID, links)
         open_ids = set()
         for d in range(3):
             for s in range(2):
