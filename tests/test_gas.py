@@ -415,10 +415,15 @@ def test_gas_gradients_match_finite_differences(f64, limiter):
                                 - run(s0.replace(tool_position=s0.tool_position - eps * dp))) / (2 * eps),
                                float(res.grad_tool_position[0] @ dp)),
     }
+    _assert_matches_differences("gas gradient", checks)
+
+
+def _assert_matches_differences(title, checks, bound=5e-3):
+    """Each check (central difference, backward pass) agrees within `bound` relative; each is reported."""
     for name, (fd, an) in checks.items():
         rel = abs(fd - an) / max(abs(fd), 1e-12)
-        report("gas gradient", wrt=name, finite_difference=fd, backward=an, relative_error=rel)
-        assert rel < 5e-3, name
+        report(title, wrt=name, finite_difference=fd, backward=an, relative_error=rel)
+        assert rel < bound, name
 
 
 def _with_scalars(state, dq):
@@ -644,7 +649,4 @@ def test_gradients_with_fractional_tool_faces_match_finite_differences(f64):
                                    - run(s0.replace(tool_position=s0.tool_position - eps * dp))) / (2 * eps),
                                   float(res.grad_tool_position[0] @ dp)),
     }
-    for name, (fd, an) in checks.items():
-        rel = abs(fd - an) / max(abs(fd), 1e-12)
-        report("gas gradient, fractional tool faces", wrt=name, finite_difference=fd, backward=an, relative_error=rel)
-        assert rel < 5e-3, name
+    _assert_matches_differences("gas gradient, fractional tool faces", checks)
