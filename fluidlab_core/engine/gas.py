@@ -33,7 +33,9 @@ One gas step of Δt (stages in order, each writing a field of its own so that it
                  cell to the solver's tolerance; the pressure is p = −ρ Δx y / Δt (Pa)
 
 where ũ is u with the solid faces set to the solids' velocity (no flow through a solid: u·n = v_s·n), closed
-walls to 0, inflow walls to their velocity; open walls have p = 0 outside.
+walls to 0, inflow walls to their velocity; open walls have p = 0 outside. This is the scheme of Stam (1999)
+on a MAC grid (Fedkiw, Stam & Jensen 2001 for buoyancy and vorticity confinement); FluidLab (Xian et al. 2023)
+uses the same splitting with a Jacobi pressure solve.
 
 Tools by face fractions (spec.tool_faces == "fractions"; Batty, Bertails & Bridson 2007): each face has an open
 share w ∈ [0, 1] (face_weights: the area outside the tools, from their SDF at the face's corners and centre), and
@@ -42,9 +44,7 @@ share w ∈ [0, 1] (face_weights: the area outside the tools, from their SDF at 
 
 so the stored u is each face's flux velocity, D u = 0 on every cell with an open face, and u moves continuously
 with the tools. Its adjoint: VB̄ = ḡ − Dᵀ y′ with L y′ = D W ḡ, and w̄ = g ⊙ (Dᵀ y′ − ḡ) with g = Dᵀ y of the
-forward solve (L depends on W); the shares' own gradient comes from face_weights.grad. This is the scheme of Stam (1999)
-on a MAC grid (Fedkiw, Stam & Jensen 2001 for buoyancy and vorticity confinement); FluidLab (Xian et al. 2023)
-uses the same splitting with a Jacobi pressure solve.
+forward solve (L depends on W); the shares' own gradient, through the tools' SDF, comes from face_weights.grad.
 
 Gradients (GasSolver.backward_step): the projection is linear, u⁺ = P ũ with P = I − M Dᵀ Π L⁺ Π D, so its
 adjoint is ũ̄ = ū⁺ − Dᵀ Π L⁺ D M ū⁺: one more solve with the same operator (Π removes the mean on enclosed fluid
@@ -186,8 +186,8 @@ class GasSolver:
         self._wall_vel = tuple(tuple(float(c) for c in (w if not isinstance(w, str) else (0.0, 0.0, 0.0)))
                                for w in spec.walls)
         # tools entering the projection by face fractions (spec.tool_faces == "fractions"): each face's open share
-        # (face_w, no gradient: the shares are held fixed in the adjoint) and the blended velocity VB = w ũ + (1 − w)
-        # u_solid whose divergence the projection removes
+        # (face_w, with a gradient: it moves with the tools) and the blended velocity VB = w ũ + (1 − w) u_solid
+        # whose divergence the projection removes
         self.fractional = spec.tool_faces == "fractions" and spec.tools_block and bool(self.tool_specs)
         self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind], weighted=self.fractional)
         if self.fractional:
