@@ -401,7 +401,7 @@ class PoissonSolver:
 
         for lv in range(self.n_levels - 1):
             self._coarsen[lv]()
-        for lv in range(self.n_levels):
+        for lv in range(1 if self.weighted else 0, self.n_levels):  # a weighted fine level reads w6, not masks
             self._make_masks[lv]()
         if flags is None:
             flags = self.flags[0].to_numpy()
