@@ -25,6 +25,7 @@ def main():
     import fluidlab_core
     from fluidlab_core.episode import render_episode
     from fluidlab_core.trajectory import Trajectory
+    from fluidlab_core.trajectory_store import report_path
 
     runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
     best = {}
@@ -48,7 +49,7 @@ def main():
                 print(f"{task}: removing {old} (replaced by {stem})")
                 old.unlink()
         shutil.copy(src, dest / f"{stem}.json")
-        report = json.loads(src.with_name(src.stem + ".report.json").read_text())
+        report = json.loads(report_path(src).read_text())
         report["trajectory"] = str(dest / f"{stem}.json")  # where it ships, not where the run wrote it
         (dest / f"{stem}.report.json").write_text(json.dumps(report, indent=1))
         traj = Trajectory.load(dest / f"{stem}.json")

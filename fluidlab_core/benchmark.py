@@ -88,7 +88,7 @@ def run_job(spec: dict) -> dict:
         import fluidlab_core
         from fluidlab_core import optim, tasks
         from fluidlab_core.files import write_atomic
-        from fluidlab_core.trajectory_store import TrajectoryStore
+        from fluidlab_core.trajectory_store import TrajectoryStore, report_path
 
         fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
         task = tasks.make(spec["task"], size=spec["size"])
@@ -142,7 +142,7 @@ def run_job(spec: dict) -> dict:
                          trajectory=str(path.relative_to(Path(spec["out"]))),
                          **{"return": float(traj.metadata["return"])})
         # beside the trajectory, as `fluidlab optimise` writes it (bench/ship_best.py copies both)
-        write_atomic(path.with_name(path.stem + ".report.json"), json.dumps(record, indent=1).encode())
+        write_atomic(report_path(path), json.dumps(record, indent=1).encode())
         return record
     except Exception as err:  # noqa: BLE001 - one failed run must not end the sweep; the record says why
         return _record(spec, error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc()[-3000:],
@@ -197,6 +197,7 @@ def merge(src: Path, out: Path, log=print) -> list[dict]:
     and budget (the runs were made on other physics: `--reevaluate` puts them on one engine), and a record whose
     trajectory file is missing. Returns the records added."""
     from fluidlab_core.files import write_atomic
+    from fluidlab_core.trajectory_store import report_path
 
     src, out = Path(src), Path(out)
     src_runs = [r for r in load_runs(src / "runs.jsonl") if "final_loss" in r]
@@ -221,7 +222,7 @@ def merge(src: Path, out: Path, log=print) -> list[dict]:
         for r in todo:
             if r["method"] != STILL:
                 traj = Path(r["trajectory"])
-                for rel in (traj, traj.with_name(traj.stem + ".report.json")):
+                for rel in (traj, report_path(traj)):
                     if (src / rel).is_file():
                         (out / rel).parent.mkdir(parents=True, exist_ok=True)
                         write_atomic(out / rel, (src / rel).read_bytes())

@@ -100,7 +100,7 @@ def _cmd_optimise(args):
 
     import fluidlab_core
     from fluidlab_core import optim, tasks
-    from fluidlab_core.trajectory_store import TrajectoryStore
+    from fluidlab_core.trajectory_store import TrajectoryStore, report_path
 
     # everything that can be refused is refused before anything is announced or computed
     task = tasks.make(args.task, size=args.size)
@@ -126,10 +126,10 @@ def _cmd_optimise(args):
               "loss_first": traj.loss_history[0] if traj.loss_history else None,
               "loss_best": min(traj.loss_history) if traj.loss_history else None,
               "precision": args.precision, "arch": args.arch, "without": list(args.without)}
-    report_path = path.with_name(path.stem + ".report.json")
-    write_atomic(report_path, json.dumps(report, indent=1).encode())
+    report_file = report_path(path)
+    write_atomic(report_file, json.dumps(report, indent=1).encode())
     print(f"final loss {report['final_loss']:.6g} (reference physics), return {report['return']:.4g}")
-    print(f"wrote {path} and {report_path}")
+    print(f"wrote {path} and {report_file}")
     return 0
 
 

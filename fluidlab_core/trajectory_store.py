@@ -15,6 +15,12 @@ from pathlib import Path
 from fluidlab_core.trajectory import Trajectory, TrajectoryError, check_name
 
 
+def report_path(path) -> Path:
+    """The optimiser's report beside the trajectory file `path`: <name>.report.json next to <name>.json."""
+    path = Path(path)
+    return path.with_name(path.stem + ".report.json")
+
+
 class StoreError(ValueError):
     """A request the trajectory folder cannot serve, with the reason."""
 
