@@ -14,7 +14,11 @@ surface (dropped); otherwise at Archimedes' depth (water filled around it), or -
 that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
 Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
-particles below that surface (share). The header says whether the engine had one velocity field or two
+particles below that surface (share), both against the 99th percentile of the far field's particle heights
+(`surface mm`, validation.submerged); the cube's centre height (`cube z mm`); and the share of the cube's volume
+below the surface that the liquid's volume Σ V⁰ J fills the tank to (`vol share`, `vol surf mm`,
+validation.submerged_by_volume), which a rough surface does not read high (the percentile sat 0.5–3 mm above
+it in the runs of 2026-11-29, 0.01–0.07 of the side). The header says whether the engine had one velocity field or two
 (engine/grid.py; an engine from before the two fields has one). Appends its table to
 bench/results/buoyancy_3d.txt unless --no-save.
 """
@@ -94,8 +98,11 @@ def main():
         xc = sim.positions("cube")
         depth, share, surface = validation.submerged(np.concatenate([sim.positions(h) for h in waters]), xc,
                                                      (c, c), b, dx, s)
-        series.append((sim.time, depth, share))
-        rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}")
+        volume = sum(float(sim.volumes(h).sum()) for h in waters)
+        vshare, vsurface = validation.submerged_by_volume(volume, xc, sim.volumes("cube"), width * width)
+        series.append((sim.time, depth, share, vshare))
+        rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}"
+                    f" {vshare:>9.3f} {vsurface * 1e3:>10.1f}")
         print(rows[-1], f"({time.time() - t0:.0f} s)", flush=True)  # progress
     start = f"dropped from {args.drop * 1e3:g} mm" if args.drop is not None else \
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
@@ -105,7 +112,8 @@ def main():
                       f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
-                      f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10}", *rows,
+                      f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10} {'vol share':>9}"
+                      f" {'vol surf mm':>10}", *rows,
                       *per_second(series, rho / M.WATER.density)]) + "\n"
     print(text, flush=True)
     if args.no_save:
@@ -116,11 +124,12 @@ def main():
 
 def per_second(series, expected):
     """Means of depth / b and share over each whole simulated second (t in (k, k + 1]), against Archimedes."""
-    t, depth, share = (np.array(c) for c in zip(*series))
+    t, depth, share, vshare = (np.array(c) for c in zip(*series))
     out = [f"means over each second (Archimedes {expected:.2f}):"]
     for k in range(int(np.floor(t.max() + 1e-9))):
         m = (t > k + 1e-9) & (t <= k + 1 + 1e-9)
-        out.append(f"  {k:>2}-{k + 1:<2} s  depth / b {depth[m].mean():.3f}  share {share[m].mean():.3f}")
+        out.append(f"  {k:>2}-{k + 1:<2} s  depth / b {depth[m].mean():.3f}  share {share[m].mean():.3f}"
+                   f"  vol share {vshare[m].mean():.3f}")
     return out
 
 
