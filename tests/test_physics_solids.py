@@ -1,6 +1,7 @@
 """Solid and coupled validation: buoyancy (Archimedes), momentum exchange, plastic dissipation, the
 Rayleigh–Taylor instability, and the Magnus effect on a spinning body in water."""
 import numpy as np
+import pytest
 
 import fluidlab_core as fl
 from fluidlab_core import materials as M
@@ -15,36 +16,39 @@ def _rigid(name, density):
     return M.Rigid(name, density=density)
 
 
+@pytest.mark.xfail(strict=True, reason="issue 19, open: the dropped cube floats at 0.40 of its volume under, "
+                                       "not 0.50 (docs/engine.md, floating bodies)")
 def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
     """A 4 cm rigid cube of 500 kg/m³ dropped from 1 cm onto 6 cm of water in a closed 12 cm tank (3-D, 16 cells
-    across, float32 on the CPU) settles at the submerged fraction ρ/ρ_w = 0.50 that Archimedes predicts.
+    across, float32 on the CPU) floats with the share ρ/ρ_w = 0.50 of its volume under the surface (Archimedes),
+    within ±0.03 (issue 19's tolerance), averaged over 0.4-1.0 s, once the splash has passed.
 
-    This replaces a test that started the bodies at their answer in a slab two cells thick and so missed the
-    error it was meant to catch: on a single velocity field the cube stopped on a cushion of void about a cell
-    thick and floated at 0.27 (0.09 for an elastic cube), because a liquid and a body that share grid nodes
-    move together and nothing closes the gap between them (engine/grid.py: two velocity fields). The submerged
-    fraction is the cube's lowest face below the far-field surface over its side, averaged over 0.4-1.0 s,
-    once the splash has passed (0.29, 0.54, 0.48 at 0.1, 0.2, 0.3 s). Tolerance ±0.05: the window's spread
-    (0.04–0.06 where the cube starts sinking in it, below; mean 0.492 here) plus half a particle spacing over the side.
+    It does not yet: expected to fail, strictly, so that a fix shows up as an unexpected pass. Measured
+    2026-11-29 (bench/buoyancy_3d.py rigid std 4 --res 16 --drop 0.01, one thread): 0.403 by volume from
+    0.5 s to 1.5 s, then sinking (0.51 at 3.5 s).
 
-    Why this window, and not the 1.2-2.0 s it used to average (measured 2026-11-27, `validation.floating_cube`
-    printed every 0.1 s): what the cube does after about 0.5 s depends on the rounding of the grid sums. With
-    the CPU's per-thread scatter (the default) on this project's current machine (AMD EPYC, 1 or 2 threads) it
-    starts sinking at 0.5 s: 0.50 at 0.8 s, 0.56 at 1.5 s, 0.58 at 2 s (mean 0.559 over 1.2-2.0 s, which failed
-    the old window); with the atomic scatter (FLUIDLAB_SCATTER_COPIES=0) it holds at 0.46-0.47 to 2 s, as the
-    default path did on the machine that wrote the old window (0.46 ± 0.003) and on CUDA. Both agree to 0.002
-    up to 0.3 s. The two outcomes are the open problem (README, docs/engine.md: floating bodies sink on past
-    Archimedes' depth, 0.67 after 10 s); this test checks what holds on every path, that the cube settles at
-    Archimedes' depth, and not the later drift, which a test here cannot pin down.
-    The fraction with one velocity field was 0.27, outside it by four times the tolerance.
-    """
+    The share is judged against the surface that the liquid's volume Σ V⁰ J fills the tank to
+    (validation.submerged_by_volume), which at the start of a set-up at Archimedes' depth reads 0.500 exactly.
+    Until 2026-11-29 this test measured the cube's lowest face against the 99th percentile of the far field's
+    particle heights and passed at 0.49 ± 0.05. That surface reads high once the surface has been disturbed:
+    its top particles scatter by about a third of a cell (the far columns' top particle heights have a standard
+    deviation of 2-3 mm at 16 cells), and the percentile sat 2.3 mm (0.06 of the side) above the volume's
+    surface throughout the same run, so the old test passed on that bias.
+
+    Why this window (measured 2026-11-27): what the cube does after about 0.5 s depends on the rounding of the
+    grid sums. With the CPU's per-thread scatter it may start sinking at 0.5 s; with the atomic scatter
+    (FLUIDLAB_SCATTER_COPIES=0) and on CUDA it holds to 2 s. Both agree to 0.002 up to 0.3 s. Measured with
+    both on 2026-11-29: the window's mean is 0.408 with two threads' per-thread scatter (the old measure read
+    0.463), and the atomic scatter fails the bound too, so the strict mark holds until the coupling is fixed. With one velocity
+    field (before engine/grid.py's two) the cube stopped on a cushion of void a cell thick, 0.27 by the old
+    measure."""
     rho = 500.0
     r = validation.floating_cube(res=16, density=rho, seconds=1.0, drop=0.01, every=0.05)
-    samples = r["fractions"][r["times"] > 0.4 - 1e-9]
-    fraction = float(np.mean(samples))
-    report("buoyancy, dropped cube", dx_m=r["dx"], fraction=fraction, expected=rho / M.WATER.density,
-           spread=float(np.ptp(samples)))
-    assert abs(fraction - rho / M.WATER.density) < 0.05
+    window = r["times"] > 0.4 - 1e-9
+    share = float(np.mean(r["volume_shares"][window]))
+    report("buoyancy, dropped cube", dx_m=r["dx"], volume_share=share, expected=rho / M.WATER.density,
+           percentile_fraction=float(np.mean(r["fractions"][window])), spread=float(np.ptp(r["volume_shares"][window])))
+    assert abs(share - rho / M.WATER.density) < 0.03
 
 
 def test_heavy_cube_rests_on_the_floor_under_water():
