@@ -668,38 +668,31 @@ def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    from fluidlab_core import tasks
-
     args = build_parser().parse_args(argv)
-    out = Path(args.out or f"bench/results/benchmark_{args.size}")
-    if args.reevaluate:
-        try:
-            reevaluate(out, args.tasks, args.arch, args.threads)
-        except ValueError as err:
-            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
-            return 2
-    if args.merge:
-        try:
-            merge(Path(args.merge), out)
-        except ValueError as err:
-            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
-            return 2
-    if args.report_only or args.reevaluate or args.merge:
-        try:
-            report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
-        except ValueError as err:
-            print(f"fluidlab benchmark: error: {err}", file=sys.stderr)
-            return 2
-        return 0
     try:
-        sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
-              args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
-              args.checkpoints, args.arch)
-    except (ValueError, KeyError) as err:
+        _dispatch(args)
+    except (ValueError, KeyError) as err:  # bad input: an unknown task or method, a folder that cannot merge …
         text = err.args[0] if isinstance(err, KeyError) and err.args and isinstance(err.args[0], str) else err
         print(f"fluidlab benchmark: error: {text}", file=sys.stderr)
         return 2
     return 0
+
+
+def _dispatch(args):
+    """What main runs for the parsed command line: re-evaluate, merge and report, or sweep."""
+    from fluidlab_core import tasks
+
+    out = Path(args.out or f"bench/results/benchmark_{args.size}")
+    if args.reevaluate:
+        reevaluate(out, args.tasks, args.arch, args.threads)
+    if args.merge:
+        merge(Path(args.merge), out)
+    if args.report_only or args.reevaluate or args.merge:
+        report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
+        return
+    sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
+          args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
+          args.checkpoints, args.arch)
 
 
 if __name__ == "__main__":
