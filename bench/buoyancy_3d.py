@@ -17,8 +17,9 @@ Columns: the cube's lowest face below the far-field surface over its side (depth
 particles below that surface (share), both against the 99th percentile of the far field's particle heights
 (`surface mm`, validation.submerged); the cube's centre height (`cube z mm`); and the share of the cube's volume
 below the surface that the liquid's volume Σ V⁰ J fills the tank to (`vol share`, `vol surf mm`,
-validation.submerged_by_volume), which a rough surface does not read high (the percentile sat 0.5–3 mm above
-it in the runs of 2026-11-29, 0.01–0.07 of the side). The header says whether the engine had one velocity field or two
+validation.submerged_by_volume), which a rough surface does not read high (the percentile sat 1.2–2.6 mm above
+it in the catalogue's water in the runs of 2026-11-29, 0.03–0.07 of the side; −0.6 to +1.1 mm in the tasks'
+water). The header says whether the engine had one velocity field or two
 (engine/grid.py; an engine from before the two fields has one). Appends its table to
 bench/results/buoyancy_3d.txt unless --no-save.
 """
