@@ -379,21 +379,9 @@ class GasSolver:
         shape = ti.static(self.shape)
         lo_cell = self._lo_cell(d, I)
         hi_cell = self._hi_cell(d, I)
-        v = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
-        fixed = 0
+        on_wall, is_open, v = self._wall_face(d, I)
+        fixed = on_wall - is_open
         n = 0.0
-        if I[d] == 0:
-            fixed = 1
-            if ti.static(self._wall_kind[2 * d] == INFLOW):
-                v = ti.Vector(self._wall_vel[2 * d], dt=self.real)
-            elif ti.static(self._wall_kind[2 * d] == OPEN):
-                fixed = 0
-        elif I[d] == shape[d]:
-            fixed = 1
-            if ti.static(self._wall_kind[2 * d + 1] == INFLOW):
-                v = ti.Vector(self._wall_vel[2 * d + 1], dt=self.real)
-            elif ti.static(self._wall_kind[2 * d + 1] == OPEN):
-                fixed = 0
         if fixed == 0:
             if I[d] > 0:
                 if self.solid[lo_cell] != 0:
@@ -408,6 +396,28 @@ class GasSolver:
             if n > 1.0:
                 v = 0.5 * v
         return fixed, v[d]
+
+    @ti.func
+    def _wall_face(self, d: ti.template(), I):
+        """For face I of axis d: (1 on the domain's walls else 0, 1 where that wall is open else 0, the wall's
+        velocity: an inflow's, else zero)."""
+        shape = ti.static(self.shape)
+        on_wall, is_open = 0, 0
+        v = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+        for side in ti.static(range(2)):
+            if I[d] == ti.static(0 if side == 0 else shape[d]):
+                on_wall = 1
+                if ti.static(self._wall_kind[2 * d + side] == INFLOW):
+                    v = ti.Vector(self._wall_vel[2 * d + side], dt=self.real)
+                elif ti.static(self._wall_kind[2 * d + side] == OPEN):
+                    is_open = 1
+        return on_wall, is_open, v
+
+    @ti.func
+    def _shuts_whole(self, kind):
+        """Whether a cell of this solid kind shuts its faces whatever the tools' fractions: a static's (1) or
+        particles' (3)."""
+        return kind == 1 or kind == 3
 
     @ti.func
     def _tool_phi(self, x):
@@ -451,19 +461,16 @@ class GasSolver:
         a static or particle cell, else the share of the face's area outside the tools, from the tools' SDF at its
         four corners and its centre (four triangles, φ linear on each: Bridson's area fraction; continuous in
         the tools' poses). Shares under 1e-3 are taken as 0 (they would only slow the solve)."""
-        shape = ti.static(self.shape)
         for d in ti.static(range(3)):
             a1, a2 = ti.static((d + 1) % 3, (d + 2) % 3)
             for I in ti.grouped(self.face_w[d]):
                 w = 1.0
-                if I[d] == 0:
-                    w = 1.0 if ti.static(self._wall_kind[2 * d] == OPEN) else 0.0
-                elif I[d] == shape[d]:
-                    w = 1.0 if ti.static(self._wall_kind[2 * d + 1] == OPEN) else 0.0
+                on_wall, is_open, _ = self._wall_face(d, I)
+                if on_wall == 1:
+                    w = ti.cast(is_open, self.real)
                 else:
-                    lo_kind = self.solid[self._lo_cell(d, I)]
-                    hi_kind = self.solid[self._hi_cell(d, I)]
-                    if lo_kind == 1 or lo_kind == 3 or hi_kind == 1 or hi_kind == 3:
+                    if self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
+                            self._shuts_whole(self.solid[self._hi_cell(d, I)]):
                         w = 0.0
                     else:
                         x = self._face_pos(d, I)
@@ -498,21 +505,15 @@ class GasSolver:
     def _face_solid_velocity(self, d: ti.template(), I):
         """The velocity (axis d) a face of fractional-tool mode takes where it is shut: a wall's, a static's or
         particles' (as _face_solid), else the nearest tool's rigid motion at the face's centre."""
-        shape = ti.static(self.shape)
         us = 0.0
-        if I[d] == 0:
-            if ti.static(self._wall_kind[2 * d] == INFLOW):
-                us = self._wall_vel[2 * d][d]
-        elif I[d] == shape[d]:
-            if ti.static(self._wall_kind[2 * d + 1] == INFLOW):
-                us = self._wall_vel[2 * d + 1][d]
+        on_wall, _, v_wall = self._wall_face(d, I)
+        if on_wall == 1:
+            us = v_wall[d]
         else:
             lo_cell = self._lo_cell(d, I)
             hi_cell = self._hi_cell(d, I)
-            lo_kind = self.solid[lo_cell]
-            hi_kind = self.solid[hi_cell]
-            lo_other = lo_kind == 1 or lo_kind == 3
-            hi_other = hi_kind == 1 or hi_kind == 3
+            lo_other = self._shuts_whole(self.solid[lo_cell])
+            hi_other = self._shuts_whole(self.solid[hi_cell])
             if lo_other and hi_other:
                 us = 0.5 * (self.solid_v[lo_cell][d] + self.solid_v[hi_cell][d])
             elif lo_other:
