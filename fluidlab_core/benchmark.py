@@ -668,9 +668,10 @@ def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     try:
-        _dispatch(args)
+        _dispatch(args, parser.get_default("methods"))
     except (ValueError, KeyError) as err:  # bad input: an unknown task or method, a folder that cannot merge …
         text = err.args[0] if isinstance(err, KeyError) and err.args and isinstance(err.args[0], str) else err
         print(f"fluidlab benchmark: error: {text}", file=sys.stderr)
@@ -678,8 +679,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def _dispatch(args):
-    """What main runs for the parsed command line: re-evaluate, merge and report, or sweep."""
+def _dispatch(args, default_methods):
+    """What main runs for the parsed command line: re-evaluate, merge and report, or sweep (default_methods: the
+    parser's, which a report reads as "every method")."""
     from fluidlab_core import tasks
 
     out = Path(args.out or f"bench/results/benchmark_{args.size}")
@@ -688,7 +690,7 @@ def _dispatch(args):
     if args.merge:
         merge(Path(args.merge), out)
     if args.report_only or args.reevaluate or args.merge:
-        report(out, args.tasks, None if args.methods == build_parser().get_default("methods") else args.methods)
+        report(out, args.tasks, None if args.methods == default_methods else args.methods)
         return
     sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
           args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,

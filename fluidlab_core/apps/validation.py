@@ -268,9 +268,10 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
     n = max(1, int(round(every / scene.dt)))
     while sim.time < seconds - 1e-9:
         sim.step(n=n)
-        fraction, share, _ = submerged(sim.positions("water"), sim.positions("cube"), (c, c), side, dx, s)
-        volume_share, _ = submerged_by_volume(float(sim.volumes("water").sum()), sim.positions("cube"),
-                                              sim.volumes("cube"), width * width)
+        x_cube = sim.positions("cube")
+        fraction, share, _ = submerged(sim.positions("water"), x_cube, (c, c), side, dx, s)
+        volume_share, _ = submerged_by_volume(float(sim.volumes("water").sum()), x_cube, sim.volumes("cube"),
+                                              width * width)
         times.append(sim.time)
         fractions.append(fraction)
         shares.append(share)
