@@ -16,7 +16,7 @@ TEMPERATURE, SMOKE = 0, 1
 WALLS = ("x-", "x+", "y-", "y+", "z-", "z+")
 ADVECTIONS = ("maccormack", "semi-lagrangian")
 LIMITERS = ("cell", "continuous")  # MacCormack's clamp range (engine/gas.py)
-TOOL_FACES = ("cells", "fractions")  # how a tool blocks the pressure projection (engine/gas.py)
+TOOL_FACES = ("cells", "fractions")  # how a tool or a static blocks the pressure projection (engine/gas.py)
 
 
 class GasSolverError(RuntimeError):
@@ -82,6 +82,7 @@ class GasSpec:
     statics_block: bool = True
     tools_block: bool = True
     tool_faces: str = "cells"
+    static_faces: str = "cells"
     particles_block: bool = False
     particle_drag: float = 0.0  # 1/s
     drag_bodies: tuple | None = None  # names of the particle bodies the gas drags (None: all)

@@ -292,7 +292,8 @@ class Scene:
                 advection: str = "maccormack", limiter: str = "cell", tolerance: float = 1e-6,
                 max_iterations: int = 200, on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
                 statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
-                particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1, tool_faces: str = "cells"):
+                particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1, tool_faces: str = "cells",
+                static_faces: str = "cells"):
         """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
         equations). A scene with gas and no particles builds a GasSimulator (fluidlab_core/gas_simulator.py).
 
@@ -316,7 +317,9 @@ class Scene:
         engine/gas_coupling.py. tool_faces: how a blocking tool enters the pressure projection: "cells" (a cell
         whose centre is inside the tool is solid, so the flow's boundary moves a whole cell at a time as the tool
         moves) or "fractions" (each cell face is open by the share of its area outside the tool, Batty et al.
-        2007, so the boundary and the flux through it move continuously with the tool's pose).
+        2007, so the boundary and the flux through it move continuously with the tool's pose). static_faces: the
+        same for statics ("fractions": a curved or slanted static is seen by its area, not as a staircase of
+        cells; computed once at build). MPM particles always block by whole cells.
         """
         from fluidlab_core.gas import ADVECTIONS, LIMITERS, TOOL_FACES, GasSpec, _number, parse_walls
 
@@ -341,8 +344,9 @@ class Scene:
             raise ValueError(f"limiter must be one of {LIMITERS}, got {limiter!r}")
         if on_fail not in ("raise", "warn"):
             raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
-        if tool_faces not in TOOL_FACES:
-            raise ValueError(f"tool_faces must be one of {TOOL_FACES}, got {tool_faces!r}")
+        for what, value in (("tool_faces", tool_faces), ("static_faces", static_faces)):
+            if value not in TOOL_FACES:
+                raise ValueError(f"{what} must be one of {TOOL_FACES}, got {value!r}")
         if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
             raise ValueError(f"gas substeps must be an integer >= 1, got {substeps!r}")
         if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -368,7 +372,7 @@ class Scene:
             advection=advection, limiter=limiter, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
             max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
             statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
-            tool_faces=tool_faces,
+            tool_faces=tool_faces, static_faces=static_faces,
             particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every),
             drag_bodies=None if drag_bodies is None else tuple(str(b) for b in drag_bodies))
         return self.gas
@@ -611,13 +615,23 @@ class Scene:
         real = runtime.real_dtype()
         g = self.gas
         static = np.zeros(g.shape, dtype=np.int8)
+        static_phi = None
         if g.statics_block and self.statics:
-            idx = np.stack(np.meshgrid(*[np.arange(n) for n in g.shape], indexing="ij"), axis=-1).reshape(-1, 3)
-            centres = g.lower + g.dx * (idx + 0.5)
-            inside = np.zeros(len(centres), dtype=bool)
-            for st in self.statics:
-                inside |= np.asarray(st.shape.sdf(centres)) < 0.0
-            static = inside.reshape(g.shape).astype(np.int8)
+            def phi(shape, offset):
+                """The statics' signed distance (m, their union's: the minimum) at the points lower + Δx (index +
+                offset) of a grid of `shape` points."""
+                idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+                points = g.lower + g.dx * (idx + np.asarray(offset, dtype=np.float64))
+                return np.min([np.asarray(st.shape.sdf(points), dtype=np.float64) for st in self.statics],
+                              axis=0).reshape(shape)
+
+            static = (phi(g.shape, (0.5, 0.5, 0.5)) < 0.0).astype(np.int8)
+            if g.static_faces == "fractions":  # at the faces' corners (the grid's vertices) and centres
+                n = np.asarray(g.shape)
+                faces = [phi(tuple(n + np.eye(3, dtype=int)[d]), [0.0 if a == d else 0.5 for a in range(3)])
+                         for d in range(3)]
+                static_phi = (phi(tuple(n + 1), (0.0, 0.0, 0.0)), faces)
         if not np.any(static == 0):
             raise ValueError("the statics fill the whole gas box: no cell holds gas")
-        return GasSolver(g, real, tool_specs=self.tools, static_solid=static, needs_grad=requires_grad)
+        return GasSolver(g, real, tool_specs=self.tools, static_solid=static, needs_grad=requires_grad,
+                         static_phi=static_phi)

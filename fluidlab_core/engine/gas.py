@@ -37,14 +37,16 @@ walls to 0, inflow walls to their velocity; open walls have p = 0 outside. This 
 on a MAC grid (Fedkiw, Stam & Jensen 2001 for buoyancy and vorticity confinement); FluidLab (Xian et al. 2023)
 uses the same splitting with a Jacobi pressure solve.
 
-Tools by face fractions (spec.tool_faces == "fractions"; Batty, Bertails & Bridson 2007): each face has an open
-share w ∈ [0, 1] (face_weights: the area outside the tools, from their SDF at the face's corners and centre), and
+Tools and statics by face fractions (spec.tool_faces, spec.static_faces == "fractions"; Batty, Bertails & Bridson
+2007): each face has an open share w ∈ [0, 1] (face_weights: the area outside those solids, from their SDF at the
+face's corners and centre; the statics' SDF sampled once on the host, the tools' every step), and
 
     projection   VB = w ũ + (1 − w) u_s,  L y = D VB with L = D W Dᵀ,  u = VB − W Dᵀ y
 
 so the stored u is each face's flux velocity, D u = 0 on every cell with an open face, and u moves continuously
 with the tools. Its adjoint: VB̄ = ḡ − Dᵀ y′ with L y′ = D W ḡ, and w̄ = g ⊙ (Dᵀ y′ − ḡ) with g = Dᵀ y of the
 forward solve (L depends on W); the shares' own gradient, through the tools' SDF, comes from face_weights.grad.
+A static's shares are fixed and have no gradient (nor that extra solve). MPM particles stay whole cells.
 
 Gradients (GasSolver.backward_step): the projection is linear, u⁺ = P ũ with P = I − M Dᵀ Π L⁺ Π D, so its
 adjoint is ũ̄ = ū⁺ − Dᵀ Π L⁺ D M ū⁺: one more solve with the same operator (Π removes the mean on enclosed fluid
@@ -113,10 +115,11 @@ def _disc_weight_local(radius, half, dx):
 class GasSolver:
     """The gas step and its gradient on Taichi fields (see the module docstring). `tool_specs`: the scene's tools
     (engine/tools.ToolSpec), whose shapes block the gas when spec.tools_block; `static_solid`: (nx, ny, nz) bools,
-    the cells inside statics, computed on the host once."""
+    the cells inside statics, computed on the host once; `static_phi`: for statics by face fractions, the statics'
+    signed distance (m) at the grid's vertices (nx+1, ny+1, nz+1) and at the three face arrays' centres."""
 
     def __init__(self, spec: GasSpec, real, tool_specs=(), static_solid: np.ndarray | None = None,
-                 needs_grad: bool = False):
+                 needs_grad: bool = False, static_phi=None):
         self.spec = spec
         self.real = real
         self.np_real = np.float64 if real == ti.f64 else np.float32
@@ -188,12 +191,23 @@ class GasSolver:
         # tools entering the projection by face fractions (spec.tool_faces == "fractions"): each face's open share
         # (face_w, with a gradient: it moves with the tools) and the blended velocity VB = w ũ + (1 − w) u_solid
         # whose divergence the projection removes
-        self.fractional = spec.tool_faces == "fractions" and spec.tools_block and bool(self.tool_specs)
+        # statics likewise (spec.static_faces == "fractions"): their SDF, fixed, sampled once on the host at the
+        # grid's vertices (the faces' corners) and the faces' centres (static_phi)
+        self.frac_tools = spec.tool_faces == "fractions" and spec.tools_block and bool(self.tool_specs)
+        self.frac_statics = getattr(spec, "static_faces", "cells") == "fractions" and static_phi is not None
+        self.fractional = self.frac_tools or self.frac_statics
         self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind], weighted=self.fractional)
         if self.fractional:
             self.face_w = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.VB = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.face_g = [ti.field(real, shape=self.face_shapes[d]) for d in range(3)]  # Dᵀ y of the forward solve
+        if self.frac_statics:
+            vertices, faces = static_phi
+            self.static_phi_v = ti.field(real, shape=tuple(n + 1 for n in self.shape))
+            self.static_phi_v.from_numpy(np.asarray(vertices, dtype=self.np_real))
+            self.static_phi_f = [ti.field(real, shape=self.face_shapes[d]) for d in range(3)]
+            for d in range(3):
+                self.static_phi_f[d].from_numpy(np.asarray(faces[d], dtype=self.np_real))
         self.nu = ti.field(real, shape=())  # kinematic viscosity (m²/s), a field so that it can change (set_viscosity)
         self.bad = ti.field(ti.i32, shape=())
         self.max_speed = ti.field(real, shape=())
@@ -415,9 +429,41 @@ class GasSolver:
 
     @ti.func
     def _shuts_whole(self, kind):
-        """Whether a cell of this solid kind shuts its faces whatever the tools' fractions: a static's (1) or
-        particles' (3)."""
-        return kind == 1 or kind == 3
+        """Whether a cell of this solid kind shuts its faces whatever the face fractions: particles' (3), and a
+        static's (1) or a tool's (2) unless that kind enters by fractions."""
+        return kind == 3 or (kind == 1 and not ti.static(self.frac_statics)) or \
+            (kind == 2 and not ti.static(self.frac_tools))
+
+    @ti.func
+    def _solid_phi(self, d: ti.template(), I, corner: ti.template()):
+        """The signed distance (m) to the solids that enter by fractions at face I of axis d: its centre (corner
+        = -1) or one of its four corners (0: −e1 −e2, 1: +e1 −e2, 2: +e1 +e2, 3: −e1 +e2, e1 and e2 half a cell
+        along the next two axes); and 1 where the nearest is a tool, 0 where it is a static."""
+        a1, a2 = ti.static((d + 1) % 3, (d + 2) % 3)
+        phi = 1e9
+        is_tool = 0
+        if ti.static(self.frac_statics):
+            if ti.static(corner < 0):
+                phi = self.static_phi_f[d][I]
+            else:
+                J = I
+                if ti.static(corner == 1 or corner == 2):
+                    J[a1] += 1
+                if ti.static(corner == 2 or corner == 3):
+                    J[a2] += 1
+                phi = self.static_phi_v[J]
+        if ti.static(self.frac_tools):
+            x = self._face_pos(d, I)
+            if ti.static(corner >= 0):
+                h = 0.5 * self.dx
+                s1 = ti.static(-1.0 if corner == 0 or corner == 3 else 1.0)
+                s2 = ti.static(-1.0 if corner == 0 or corner == 1 else 1.0)
+                x += h * (s1 * ti.Vector.unit(3, a1, self.real) + s2 * ti.Vector.unit(3, a2, self.real))
+            pt, _ = self._tool_phi(x)
+            if pt < phi:
+                phi = pt
+                is_tool = 1
+        return phi, is_tool
 
     @ti.func
     def _tool_phi(self, x):
@@ -457,35 +503,30 @@ class GasSolver:
 
     @ti.kernel
     def face_weights(self):
-        """The open share w of every face (fractional tools): 1 or 0 on the domain's walls (open or not), 0 next to
-        a static or particle cell, else the share of the face's area outside the tools, from the tools' SDF at its
-        four corners and its centre (four triangles, φ linear on each: Bridson's area fraction; continuous in
-        the tools' poses). Shares under 1e-3 are taken as 0 (they would only slow the solve)."""
+        """The open share w of every face (solids by fractions): 1 or 0 on the domain's walls (open or not), 0 next
+        to a cell that shuts whole (particles; a static or tool that does not enter by fractions), else the share
+        of the face's area outside the fractional solids, from their SDF at its four corners and its centre (four
+        triangles, φ linear on each: Bridson's area fraction; continuous in the tools' poses). Shares under 1e-3
+        are taken as 0 (they would only slow the solve)."""
         for d in ti.static(range(3)):
-            a1, a2 = ti.static((d + 1) % 3, (d + 2) % 3)
             for I in ti.grouped(self.face_w[d]):
                 w = 1.0
                 on_wall, is_open, _ = self._wall_face(d, I)
                 if on_wall == 1:
                     w = ti.cast(is_open, self.real)
+                elif self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
+                        self._shuts_whole(self.solid[self._hi_cell(d, I)]):
+                    w = 0.0
                 else:
-                    if self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
-                            self._shuts_whole(self.solid[self._hi_cell(d, I)]):
+                    pc, _ = self._solid_phi(d, I, -1)
+                    p0, _ = self._solid_phi(d, I, 0)
+                    p1, _ = self._solid_phi(d, I, 1)
+                    p2, _ = self._solid_phi(d, I, 2)
+                    p3, _ = self._solid_phi(d, I, 3)
+                    w = 0.25 * (self._triangle_share(pc, p0, p1) + self._triangle_share(pc, p1, p2)
+                                + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
+                    if w < 1e-3:
                         w = 0.0
-                    else:
-                        x = self._face_pos(d, I)
-                        h = 0.5 * self.dx
-                        e1 = h * ti.Vector.unit(3, a1, self.real)
-                        e2 = h * ti.Vector.unit(3, a2, self.real)
-                        pc, _ = self._tool_phi(x)
-                        p0, _ = self._tool_phi(x - e1 - e2)
-                        p1, _ = self._tool_phi(x + e1 - e2)
-                        p2, _ = self._tool_phi(x + e1 + e2)
-                        p3, _ = self._tool_phi(x - e1 + e2)
-                        w = 0.25 * (self._triangle_share(pc, p0, p1) + self._triangle_share(pc, p1, p2)
-                                    + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
-                        if w < 1e-3:
-                            w = 0.0
                 self.face_w[d][I] = w
 
     @ti.kernel
@@ -503,8 +544,9 @@ class GasSolver:
 
     @ti.func
     def _face_solid_velocity(self, d: ti.template(), I):
-        """The velocity (axis d) a face of fractional-tool mode takes where it is shut: a wall's, a static's or
-        particles' (as _face_solid), else the nearest tool's rigid motion at the face's centre."""
+        """The velocity (axis d) a face of fractional mode takes where it is shut: a wall's, or that of a cell that
+        shuts whole (as _face_solid), else the nearest fractional solid's: a tool's rigid motion at the face's
+        centre, or a static's (0)."""
         us = 0.0
         on_wall, _, v_wall = self._wall_face(d, I)
         if on_wall == 1:
@@ -520,12 +562,14 @@ class GasSolver:
                 us = self.solid_v[lo_cell][d]
             elif hi_other:
                 us = self.solid_v[hi_cell][d]
-            else:
-                x = self._face_pos(d, I)
-                _, t = self._tool_phi(x)
-                for k in ti.static(range(len(self._tool_sdf))):
-                    if t == k:
-                        us = (self.tool_v[k] + self.tool_w[k].cross(x - self.tool_p[k]))[d]
+            elif ti.static(self.frac_tools):  # the nearest fractional solid's motion: a tool's, or a static's (0)
+                _, is_tool = self._solid_phi(d, I, -1)
+                if is_tool == 1:
+                    x = self._face_pos(d, I)
+                    _, t = self._tool_phi(x)
+                    for k in ti.static(range(len(self._tool_sdf))):
+                        if t == k:
+                            us = (self.tool_v[k] + self.tool_w[k].cross(x - self.tool_p[k]))[d]
         return us
 
     # --- stage kernels ---------------------------------------------------------------------------------------
@@ -988,14 +1032,16 @@ class GasSolver:
         self.boundaries()
         if particles is not None:
             particles()
-        if self.fractional:  # the faces' open shares move with the tools every step
+        if not (self._moving_solids or not self._flags_ready):
+            return
+        if self.fractional:  # the faces' open shares move with the tools every step (statics alone: once)
             self.face_weights()
             self._weights_to_poisson()
             w = [f.to_numpy() for f in self.face_w]
             links = [w[d].take(np.arange(1, self.shape[d]), axis=d) > 0.0 for d in range(3)]
             self.poisson.update_flags(links=links)
             self._flags_ready = True
-        elif self._moving_solids or not self._flags_ready:
+        else:
             self._flags_to_poisson()
             self.poisson.update_flags()
             self._flags_ready = True
@@ -1172,7 +1218,8 @@ class GasSolver:
         self.prepare_boundaries(particles)
         self.forward_stages(dt)
         self.clear_grads()
-        if self.fractional:  # the forward solve again: its Dᵀ y carries the gradient to the face shares
+        if self.frac_tools:  # the forward solve again: its Dᵀ y carries the gradient to the face shares
+            # (statics' shares are fixed: no gradient, no solve)
             self.divergence(self.VB[0], self.VB[1], self.VB[2], False)
             rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
             self._check_solve(rep, step, "pressure (backward)")
@@ -1204,7 +1251,7 @@ class GasSolver:
             self.source_frames.grad()
         if self._tool_sdf:
             self.boundaries.grad()
-        if self.fractional:  # every reader of the shares (override, the projection) is behind us
+        if self.frac_tools:  # every reader of the shares (override, the projection) is behind us
             self.face_weights.grad()
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
 
