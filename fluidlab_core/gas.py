@@ -83,6 +83,7 @@ class GasSpec:
     tools_block: bool = True
     tool_faces: str = "cells"
     static_faces: str = "cells"
+    particle_faces: str = "cells"
     particles_block: bool = False
     particle_drag: float = 0.0  # 1/s
     drag_bodies: tuple | None = None  # names of the particle bodies the gas drags (None: all)

@@ -293,7 +293,7 @@ class Scene:
                 max_iterations: int = 200, on_fail: str = "raise", max_cfl: float = 2.0, scalars=(), substeps: int = 1,
                 statics_block: bool = True, tools_block: bool = True, particles_block: bool = False,
                 particle_drag: float = 0.0, drag_bodies=None, check_every: int = 1, tool_faces: str = "cells",
-                static_faces: str = "cells"):
+                static_faces: str = "cells", particle_faces: str = "cells"):
         """Fill a box of the domain with gas (air and smoke), simulated on a grid of its own (engine/gas.py has the
         equations). A scene with gas and no particles builds a GasSimulator (fluidlab_core/gas_simulator.py).
 
@@ -319,7 +319,9 @@ class Scene:
         moves) or "fractions" (each cell face is open by the share of its area outside the tool, Batty et al.
         2007, so the boundary and the flux through it move continuously with the tool's pose). static_faces: the
         same for statics ("fractions": a curved or slanted static is seen by its area, not as a staircase of
-        cells; computed once at build). MPM particles always block by whole cells.
+        cells; computed once at build). particle_faces (with particles_block): "cells" (cells at least half full of
+        particles are solid) or "fractions" (the particles' volume share at each face, deposited with trilinear
+        weights, shuts that part of it, moving at their mean velocity there: continuous in their positions).
         """
         from fluidlab_core.gas import ADVECTIONS, LIMITERS, TOOL_FACES, GasSpec, _number, parse_walls
 
@@ -344,9 +346,13 @@ class Scene:
             raise ValueError(f"limiter must be one of {LIMITERS}, got {limiter!r}")
         if on_fail not in ("raise", "warn"):
             raise ValueError(f"on_fail must be 'raise' or 'warn', got {on_fail!r}")
-        for what, value in (("tool_faces", tool_faces), ("static_faces", static_faces)):
+        for what, value in (("tool_faces", tool_faces), ("static_faces", static_faces),
+                            ("particle_faces", particle_faces)):
             if value not in TOOL_FACES:
                 raise ValueError(f"{what} must be one of {TOOL_FACES}, got {value!r}")
+        if particle_faces == "fractions" and not particles_block:
+            raise ValueError("particle_faces='fractions' says how particles block the gas: it needs "
+                             "particles_block=True")
         if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
             raise ValueError(f"gas substeps must be an integer >= 1, got {substeps!r}")
         if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -372,7 +378,7 @@ class Scene:
             advection=advection, limiter=limiter, tolerance=tolerance, max_iterations=int(max_iterations), on_fail=on_fail,
             max_cfl=_number("max_cfl", max_cfl, 0.0, strict=True), scalars=names, substeps=int(substeps),
             statics_block=bool(statics_block), tools_block=bool(tools_block), particles_block=bool(particles_block),
-            tool_faces=tool_faces, static_faces=static_faces,
+            tool_faces=tool_faces, static_faces=static_faces, particle_faces=particle_faces,
             particle_drag=_number("particle_drag", particle_drag, 0.0), check_every=int(check_every),
             drag_bodies=None if drag_bodies is None else tuple(str(b) for b in drag_bodies))
         return self.gas

@@ -194,13 +194,24 @@ class GasSolver:
         # statics likewise (spec.static_faces == "fractions"): their SDF, fixed, sampled once on the host at the
         # grid's vertices (the faces' corners) and the faces' centres (static_phi)
         self.frac_tools = spec.tool_faces == "fractions" and spec.tools_block and bool(self.tool_specs)
-        self.frac_statics = getattr(spec, "static_faces", "cells") == "fractions" and static_phi is not None
-        self.fractional = self.frac_tools or self.frac_statics
+        self.frac_statics = spec.static_faces == "fractions" and static_phi is not None
+        # MPM particles likewise (spec.particle_faces == "fractions"): their volume share α at each face, deposited
+        # with trilinear weights (continuous in their positions), takes that part of the face (particle_faces_*)
+        self.frac_particles = spec.particle_faces == "fractions" and spec.particles_block
+        self.fractional = self.frac_tools or self.frac_statics or self.frac_particles
         self.poisson = PoissonSolver(self.shape, [k == OPEN for k in self._wall_kind], weighted=self.fractional)
         if self.fractional:
             self.face_w = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.VB = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.face_g = [ti.field(real, shape=self.face_shapes[d]) for d in range(3)]  # Dᵀ y of the forward solve
+        if self.frac_particles:
+            # per face: Σ V_p N_f(x_p) (m³) and Σ V_p N_f(x_p) v_p,d, the particles' volume share α (deposited
+            # volume / Δx³) and mean velocity ū; the share outside the tools and statics (w_g, before α)
+            self.pf_m = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.pf_mv = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.pf_alpha = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.pf_u = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
+            self.face_wg = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
         if self.frac_statics:
             vertices, faces = static_phi
             self.static_phi_v = ti.field(real, shape=tuple(n + 1 for n in self.shape))
@@ -431,8 +442,8 @@ class GasSolver:
     def _shuts_whole(self, kind):
         """Whether a cell of this solid kind shuts its faces whatever the face fractions: particles' (3), and a
         static's (1) or a tool's (2) unless that kind enters by fractions."""
-        return kind == 3 or (kind == 1 and not ti.static(self.frac_statics)) or \
-            (kind == 2 and not ti.static(self.frac_tools))
+        return (kind == 3 and not ti.static(self.frac_particles)) or \
+            (kind == 1 and not ti.static(self.frac_statics)) or (kind == 2 and not ti.static(self.frac_tools))
 
     @ti.func
     def _solid_phi(self, d: ti.template(), I, corner: ti.template()):
@@ -504,10 +515,11 @@ class GasSolver:
     @ti.kernel
     def face_weights(self):
         """The open share w of every face (solids by fractions): 1 or 0 on the domain's walls (open or not), 0 next
-        to a cell that shuts whole (particles; a static or tool that does not enter by fractions), else the share
-        of the face's area outside the fractional solids, from their SDF at its four corners and its centre (four
-        triangles, φ linear on each: Bridson's area fraction; continuous in the tools' poses). Shares under 1e-3
-        are taken as 0 (they would only slow the solve)."""
+        to a cell that shuts whole (a static, tool or particles' cell that does not enter by fractions), else the
+        share w_g of the face's area outside the fractional tools and statics, from their SDF at its four corners
+        and its centre (four triangles, φ linear on each: Bridson's area fraction; continuous in the tools' poses),
+        less the particles' volume share α there with fractional particles: w = max(w_g − α, 0). Shares under
+        1e-3 are taken as 0 (they would only slow the solve)."""
         for d in ti.static(range(3)):
             for I in ti.grouped(self.face_w[d]):
                 w = 1.0
@@ -517,7 +529,7 @@ class GasSolver:
                 elif self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
                         self._shuts_whole(self.solid[self._hi_cell(d, I)]):
                     w = 0.0
-                else:
+                elif ti.static(self.frac_tools or self.frac_statics):
                     pc, _ = self._solid_phi(d, I, -1)
                     p0, _ = self._solid_phi(d, I, 0)
                     p1, _ = self._solid_phi(d, I, 1)
@@ -527,6 +539,12 @@ class GasSolver:
                                 + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
                     if w < 1e-3:
                         w = 0.0
+                if ti.static(self.frac_particles):
+                    self.face_wg[d][I] = w
+                    if on_wall == 0:
+                        w = ti.max(w - self.pf_alpha[d][I], 0.0)
+                        if w < 1e-3:
+                            w = 0.0
                 self.face_w[d][I] = w
 
     @ti.kernel
@@ -546,7 +564,7 @@ class GasSolver:
     def _face_solid_velocity(self, d: ti.template(), I):
         """The velocity (axis d) a face of fractional mode takes where it is shut: a wall's, or that of a cell that
         shuts whole (as _face_solid), else the nearest fractional solid's: a tool's rigid motion at the face's
-        centre, or a static's (0)."""
+        centre, or a static's (0); with fractional particles, blended with theirs by the part they shut."""
         us = 0.0
         on_wall, _, v_wall = self._wall_face(d, I)
         if on_wall == 1:
@@ -570,6 +588,13 @@ class GasSolver:
                     for k in ti.static(range(len(self._tool_sdf))):
                         if t == k:
                             us = (self.tool_v[k] + self.tool_w[k].cross(x - self.tool_p[k]))[d]
+        if ti.static(self.frac_particles):
+            # the shut part 1 − w: 1 − w_g of it the solids' above, w_g − w the particles' (their mean velocity);
+            # on walls and next to whole cells w = w_g, so this leaves us as it is there
+            w = self.face_w[d][I]
+            wg = self.face_wg[d][I]
+            if w < 1.0:
+                us = ((1.0 - wg) * us + (wg - w) * self.pf_u[d][I]) / (1.0 - w)
         return us
 
     # --- stage kernels ---------------------------------------------------------------------------------------
@@ -599,6 +624,51 @@ class GasSolver:
             if self.solid[I] == 0 and self.cell_m[I] >= threshold:
                 self.solid[I] = ti.cast(3, ti.i8)
                 self.solid_v[I] = self.cell_mv[I]
+
+    @ti.kernel
+    def particle_faces_clear(self):
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.pf_m[d]):
+                self.pf_m[d][I] = 0.0
+                self.pf_mv[d][I] = 0.0
+
+    @ti.func
+    def deposit_particle(self, xp, vol, vp):
+        """Add a particle at xp (m) of volume vol (m³) and velocity vp to every face it reaches, with the trilinear
+        weights N_f(x_p) of each axis's face lattice (fractional particles; the coupling's kernel calls this)."""
+        for d in ti.static(range(3)):
+            off = ti.Vector([0.5, 0.5, 0.5], dt=self.real)
+            off[d] = 0.0
+            gpos = (xp - ti.Vector(self._lower)) / self.dx - off
+            base = ti.cast(ti.floor(gpos), ti.i32)
+            frac = gpos - base.cast(self.real)
+            for c in ti.static(ti.ndrange(2, 2, 2)):
+                J = base + ti.Vector([c[0], c[1], c[2]])
+                inside = True
+                for a in ti.static(range(3)):
+                    if J[a] < 0 or J[a] >= ti.static(self.face_shapes[d])[a]:
+                        inside = False
+                if inside:
+                    wgt = 1.0
+                    for a in ti.static(range(3)):
+                        if ti.static(c[a] == 1):
+                            wgt *= frac[a]
+                        else:
+                            wgt *= 1.0 - frac[a]
+                    self.pf_m[d][J] += vol * wgt
+                    self.pf_mv[d][J] += vol * wgt * vp[d]
+
+    @ti.kernel
+    def particle_faces_finish(self):
+        """α = Σ V N / Δx³ and ū = Σ V N v / Σ V N at every face (0 where no particle reaches)."""
+        for d in ti.static(range(3)):
+            for I in ti.grouped(self.pf_m[d]):
+                m = self.pf_m[d][I]
+                u = 0.0
+                if m > 0.0:
+                    u = self.pf_mv[d][I] / m
+                self.pf_u[d][I] = u
+                self.pf_alpha[d][I] = m / ti.static(self.dx ** 3)
 
     @ti.kernel
     def _flags_to_poisson(self):
@@ -1153,6 +1223,14 @@ class GasSolver:
                 for I in ti.grouped(self.VB[d]):
                     self.VB[d].grad[I] = 0.0
                     self.face_w[d].grad[I] = 0.0
+        if ti.static(self.frac_particles):
+            for d in ti.static(range(3)):
+                for I in ti.grouped(self.pf_m[d]):
+                    self.pf_m[d].grad[I] = 0.0
+                    self.pf_mv[d].grad[I] = 0.0
+                    self.pf_alpha[d].grad[I] = 0.0
+                    self.pf_u[d].grad[I] = 0.0
+                    self.face_wg[d].grad[I] = 0.0
         for I in ti.grouped(self.omega):
             self.omega.grad[I] = ti.Vector([0.0, 0.0, 0.0])
             self.f_vort.grad[I] = ti.Vector([0.0, 0.0, 0.0])
@@ -1218,8 +1296,8 @@ class GasSolver:
         self.prepare_boundaries(particles)
         self.forward_stages(dt)
         self.clear_grads()
-        if self.frac_tools:  # the forward solve again: its Dᵀ y carries the gradient to the face shares
-            # (statics' shares are fixed: no gradient, no solve)
+        if self.frac_tools or self.frac_particles:  # the forward solve again: its Dᵀ y carries the gradient to
+            # the face shares (statics' shares are fixed: no gradient, no solve)
             self.divergence(self.VB[0], self.VB[1], self.VB[2], False)
             rep = self.poisson.solve(self.spec.tolerance, self.spec.max_iterations)
             self._check_solve(rep, step, "pressure (backward)")
@@ -1244,15 +1322,19 @@ class GasSolver:
         else:
             self.advect_sl.grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
-        if particles_grad is not None:  # every stage that reads solid_v (sources, override) is behind us
+        if particles_grad is not None and not self.frac_particles:
+            # every stage that reads solid_v (sources, override) is behind us, and boundaries.grad (which takes
+            # solid_v's gradient for the tools' cells) is not yet
             particles_grad()
         if self.sources:
             self.source_weights.grad()
             self.source_frames.grad()
         if self._tool_sdf:
             self.boundaries.grad()
-        if self.frac_tools:  # every reader of the shares (override, the projection) is behind us
+        if self.frac_tools or self.frac_particles:  # every reader of the shares (override, the projection) is behind us
             self.face_weights.grad()
+        if particles_grad is not None and self.frac_particles:  # every reader of the particles' face fields is behind us
+            particles_grad()
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
 
     def backward_substeps(self, starts, dt: float, first_step: int, carry_v, carry_q, particles=None,

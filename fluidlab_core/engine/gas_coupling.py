@@ -5,7 +5,12 @@ Operator splitting, once per scene step (after the MPM step of dt, before the ga
     particles → gas   each gas cell's particle volume share φ_c = Σ_{p in c} V_p / Δx_g³ and mean velocity
                       ū_c = Σ V_p v_p / Σ V_p over the particles the gas does not drag; cells with φ_c ≥ ½ are
                       solid for the gas and move at ū_c (the gas flows round the liquid and is pushed by it, as
-                      round a tool); dragged (light) particles ride in the gas and do not block it
+                      round a tool); dragged (light) particles ride in the gas and do not block it.
+                      With particle_faces="fractions" instead: each gas face f gets the particles' volume share
+                      α_f = Σ V_p N_f(x_p) / Δx_g³ and mean velocity ū_f = Σ V_p N_f v_p / Σ V_p N_f, N_f the
+                      trilinear weight of the face's lattice (continuous in x_p), and is open by
+                      w_f = max(w_g − α_f, 0) (w_g its share outside tools and statics), its shut part moving at
+                      ū_f (engine/gas.py, face fractions)
     gas → particles   v_p ← v_p + a (u_gas(x_p) − v_p), a = 1 − exp(−k Δt), for the particles of the bodies the
                       user named, with u_gas the trilinear interpolation of the face velocities and k (1/s) the
                       drag rate, i.e. Stokes-like drag relaxing a particle to the local air speed over 1/k seconds
@@ -24,13 +29,17 @@ drag; in reverse order:
                   weights; Taichi's autodiff of `drag_wind`, which reads the gas after the step)
     gas substeps  GasSolver.backward_step, each from its start state (kept on the host by the forward or by the
                   segment's recompute), with the particles of slot s1 rasterised again; the gradient of the solid
-                  cells' velocities goes to the particles that made them: v̄_p += (V_p / Σ_c V) ∂L/∂ū_c
+                  cells' velocities goes to the particles that made them: v̄_p += (V_p / Σ_c V) ∂L/∂ū_c (with
+                  fractional particles: of the faces' shares and velocities, to x̄_p and v̄_p)
     tools         the gas's gradients with respect to the tools' pose (end of step, slot s1) and twist go into
                   the MPM state's tool gradients, so the MPM backward carries them on
 
 Which cell a particle falls in, and whether a cell is solid (φ_c ≥ ½), are piecewise constant in the positions:
 their derivative is zero almost everywhere, and the gradient carries none (a finite difference across a cell
-boundary sees a jump instead). The dragged particles' own cells are not solid, so the two directions touch
+boundary sees a jump instead). With fractional particles the shares and velocities are trilinear deposits, and
+their gradient (Taichi's autodiff of deposit_faces and particle_faces_finish, after the shares' own gradient from
+the projection's adjoint) reaches the particles' positions and velocities; it has kinks where a particle crosses a
+face lattice's plane and where a share reaches 0 (w_g = α), and shares under 1e-3 are set to 0 (a step of 1e-3). The dragged particles' own cells are not solid, so the two directions touch
 disjoint particles and the in-place drag leaves what the solids' backward reads unchanged.
 """
 import numpy as np
@@ -76,6 +85,14 @@ class GasParticleCoupling:
             if m > 0.0:
                 g.cell_mv[I] = g.cell_mv[I] / m
             g.cell_m[I] = m / self.cell_volume
+
+    @ti.kernel
+    def deposit_faces(self, x: ti.template(), v: ti.template(), s: ti.i32):
+        """Fractional particles: every blocking particle's volume and velocity onto the gas faces it reaches
+        (GasSolver.deposit_particle; differentiable in x and v)."""
+        for p in range(self.model.n_particles):
+            if self.drag[p] == 0:
+                self.gas.deposit_particle(x[s, p], self.model.rest_volume[p], v[s, p])
 
     @ti.func
     def _cell_of(self, xp):
@@ -134,9 +151,24 @@ class GasParticleCoupling:
 
     # --- the scene step's two halves (fast and differentiable solvers alike) -----------------------------------
     def particles_to_gas(self, state, s: int = 0):
-        """Before a gas step: the particle cells of slot s become moving solids (with particles_block)."""
+        """Before a gas step: the particle cells of slot s become moving solids (with particles_block), or with
+        fractional particles their volume share and velocity at each face."""
+        if self.gas.frac_particles:
+            self.gas.particle_faces_clear()
+            self.deposit_faces(state.x, state.v, s)
+            self.gas.particle_faces_finish()
+            return
         self.rasterize(state.x, state.v, s)
         self.gas.particle_solids(0.5)
+
+    def particles_grad(self, state, s: int):
+        """After the gas step's backward: the gradients of the solid cells' velocities (cells), or of the faces'
+        particle shares and velocities (fractions), to the particles of slot s."""
+        if self.gas.frac_particles:
+            self.gas.particle_faces_finish.grad()
+            self.deposit_faces.grad(state.x, state.v, s)
+        else:
+            self.solid_grad(state.x, state.v, s)
 
     def gas_to_particles(self, state, dt: float, s: int = 0):
         if self.drag_rate > 0.0:
@@ -216,7 +248,7 @@ class CoupledGas:
             cp.drag_wind.grad(self.state.x, s1, a)
             cp.add_velocity_grad(*self.carry_v)
         self._set_tools(s1, twist)
-        solid_grad = (lambda: cp.solid_grad(self.state.x, self.state.v, s1)) if gas.spec.particles_block else None
+        solid_grad = (lambda: cp.particles_grad(self.state, s1)) if gas.spec.particles_block else None
         tool_g, bad = gas.backward_substeps(kept[:self.substeps], self.sub_dt, (self.first_step + g) * self.substeps,
                                             self.carry_v, self.carry_q, particles=self._particles(s1),
                                             particles_grad=solid_grad)
