@@ -654,8 +654,8 @@ def test_gradients_with_fractional_tool_faces_match_finite_differences(f64):
 
 # --- statics entering by face fractions (static_faces="fractions") --------------------------------------------------
 def test_fractional_static_faces_give_a_gap_its_true_width_and_their_gradients_match_finite_differences(f64):
-    """A stream of U = 1 m/s (inflow wall x−, open x+) through a 2 × 1 m slab (16 × 8 cells of 0.125 m) narrowed by two
-    static boxes over 0.5 ≤ x ≤ 1.5 m to a gap 0.30 ≤ y ≤ 0.72 m whose walls lie between cell centres. Inviscid and
+    """A stream of U = 1 m/s (inflow wall x−, open x+) through a 2 × 1 m slab (16 × 8 cells of 0.125 m) narrowed by
+    two static boxes over 0.5 ≤ x ≤ 1.5 m to a gap 0.30 ≤ y ≤ 0.72 m whose walls lie between cell centres. Inviscid and
     incompressible, the flow in the middle of the gap moves at U · 1 m / 0.42 m = 2.381 m/s (continuity; the
     entrance's disturbance decays as exp(−π x / 0.42 m), 2 % at the section's middle). With whole cells the gap is
     four cells, 0.5 m, and the flow 2.00 m/s (16 % slow); by fractions the faces at the gap's walls are open by 0.6
@@ -696,7 +696,8 @@ def test_fractional_static_faces_give_a_gap_its_true_width_and_their_gradients_m
     # gradients: a non-uniform start (the MacCormack clamp has no derivative at the ties of a flat field)
     rng = np.random.default_rng(3)
     g0 = s0.gas.copy()
-    g0.velocity = tuple(u + 0.1 * np.sin(np.arange(u.size).reshape(u.shape) * 0.7 + d) for d, u in enumerate(g0.velocity))
+    g0.velocity = tuple(u + 0.1 * np.sin(np.arange(u.size).reshape(u.shape) * 0.7 + d)
+                        for d, u in enumerate(g0.velocity))
     loss = losses.GasLinear({"velocity": rng.standard_normal((nx, ny, 1, 3))})
     d_gas = tuple(rng.standard_normal(u.shape) for u in g0.velocity)
 
@@ -760,7 +761,8 @@ def test_fractional_particle_faces_move_the_gas_continuously_and_pass_gradients_
     open_cells = sim.gas.poisson.flags[0].to_numpy() == 1
     div = (ux[1:] - ux[:-1]) + (uy[:, 1:] - uy[:, :-1]) + (uz[:, :, 1:] - uz[:, :, :-1])
     report("particle faces", max_change_step_dx_64=changes[dx / 64], max_change_step_dx_512=changes[dx / 512],
-           cut_faces=int(sum(((wd > 0.05) & (wd < 0.95)).sum() for wd in w)), shut_faces=int(sum((wd == 0).sum() for wd in w)),
+           cut_faces=int(sum(((wd > 0.05) & (wd < 0.95)).sum() for wd in w)),
+           shut_faces=int(sum((wd == 0).sum() for wd in w)),
            max_divergence=float(np.abs(div[open_cells]).max()))
     assert 0.0 < changes[dx / 512] < 0.3 * changes[dx / 64] and changes[dx / 64] < 0.05, changes
     assert np.abs(div[open_cells]).max() <= 1e-9

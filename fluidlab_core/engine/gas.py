@@ -1102,7 +1102,7 @@ class GasSolver:
         self.boundaries()
         if particles is not None:
             particles()
-        if not (self._moving_solids or not self._flags_ready):
+        if self._flags_ready and not self._moving_solids:  # fixed solids: the shares and flags stand
             return
         if self.fractional:  # the faces' open shares move with the tools every step (statics alone: once)
             self.face_weights()
@@ -1331,10 +1331,10 @@ class GasSolver:
             self.source_frames.grad()
         if self._tool_sdf:
             self.boundaries.grad()
-        if self.frac_tools or self.frac_particles:  # every reader of the shares (override, the projection) is behind us
-            self.face_weights.grad()
-        if particles_grad is not None and self.frac_particles:  # every reader of the particles' face fields is behind us
-            particles_grad()
+        if self.frac_tools or self.frac_particles:
+            self.face_weights.grad()  # every reader of the shares (override, the projection) is behind us
+        if particles_grad is not None and self.frac_particles:
+            particles_grad()  # every reader of the particles' face fields is behind us
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
 
     def backward_substeps(self, starts, dt: float, first_step: int, carry_v, carry_q, particles=None,
