@@ -194,8 +194,9 @@ def merge(src: Path, out: Path, log=print) -> list[dict]:
     OUT/runs.jsonl lacks is appended to it, after its trajectory and report are copied to the same relative path
     under OUT. Runs done in separate folders (beside other work, on other machines) join one table this way.
     Refuses, before writing anything, a SRC whose still tool reads another loss than OUT's for the same task, size
-    and budget (the runs were made on other physics: `--reevaluate` puts them on one engine), and a record whose
-    trajectory file is missing. Returns the records added."""
+    and budget (the runs were made on other physics: `--reevaluate` puts them on one engine, and then the
+    re-evaluated still losses are compared), and a record whose trajectory file is missing. Returns the records
+    added."""
     from fluidlab_core.files import write_atomic
     from fluidlab_core.trajectory_store import report_path
 
@@ -206,14 +207,22 @@ def merge(src: Path, out: Path, log=print) -> list[dict]:
     if src.resolve() == out.resolve():
         raise ValueError(f"cannot merge {src} into itself")
     out.mkdir(parents=True, exist_ok=True)
+    def still_now(folder: Path, r: dict) -> float:
+        """The still tool's loss on the engine the folder's runs were last put on: the --reevaluate figure when
+        there is one, else the recorded one."""
+        again = {x["key"]: x for x in load_runs(folder / REEVALUATED) if "key" in x}
+        return float(again[r["key"]]["final_loss_now"]) if r["key"] in again else float(r["final_loss"])
+
     with _Locked(out / "runs.jsonl") as f:
         have = {r["key"]: r for r in load_runs(out / "runs.jsonl") if "final_loss" in r}
         for r in src_runs:
             mine = have.get(r["key"])
-            if r["method"] == STILL and mine is not None and not np.isclose(r["final_loss"], mine["final_loss"],
-                                                                            rtol=1e-6, atol=0.0):
+            if r["method"] != STILL or mine is None:
+                continue
+            theirs_now, mine_now = still_now(src, r), still_now(out, mine)
+            if not np.isclose(theirs_now, mine_now, rtol=1e-6, atol=0.0):
                 raise ValueError(f"{r['task']} ({r['size']}, budget {r['budget']}): the still tool's loss is "
-                                 f"{r['final_loss']:.6e} in {src} and {mine['final_loss']:.6e} in {out}; their runs "
+                                 f"{theirs_now:.6e} in {src} and {mine_now:.6e} in {out}; their runs "
                                  f"were made on different physics (run --reevaluate on both first)")
         todo = [r for r in src_runs if r["key"] not in have]
         for r in todo:

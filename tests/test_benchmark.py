@@ -243,7 +243,8 @@ def _fake_run(out: Path, task: str, method: str, seed: int, loss: float, size="m
 def test_merge_adds_another_folders_runs_once_and_refuses_other_physics(tmp_path, capsys):
     """Runs done in a separate folder join the main one with their trajectories; a run the main folder has is not
     added twice; a folder whose still tool reads another loss (its runs were made on other physics) is refused before
-    anything is written; `--merge` then writes the report."""
+    anything is written, until `--reevaluate` has put the main folder's runs on the other's engine; `--merge` then
+    writes the report."""
     main, side, other = tmp_path / "main", tmp_path / "side", tmp_path / "other"
     _fake_run(main, "GatheringEasy", "still", 0, 5e-3)
     _fake_run(main, "GatheringEasy", "dp", 0, 4.6e-3)
@@ -278,3 +279,11 @@ def test_merge_adds_another_folders_runs_once_and_refuses_other_physics(tmp_path
 
     assert benchmark.main(["--merge", str(other), "--out", str(main)]) == 2
     assert "different physics" in capsys.readouterr().err
+
+    # once the main folder's runs are re-evaluated on the other folder's engine (--reevaluate), the still tools
+    # agree and the merge goes ahead
+    with (main / benchmark.REEVALUATED).open("w") as f:
+        f.write(json.dumps({"key": "GatheringEasy|still|0|medium|100", "final_loss_now": 5.1e-3,
+                            "recorded_final_loss": 5e-3}) + "\n")
+    added = benchmark.merge(other, main, log=lambda *_: None)
+    assert [r["key"] for r in added] == ["GatheringEasy|pods|0|medium|100"]
