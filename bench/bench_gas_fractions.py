@@ -8,7 +8,8 @@ x+ wall, MacCormack advection, a pressure projection to a relative residual of 1
 solid is one of
 - "tool": a box paddle (0.12 × 0.08 × 0.2 m) in mid-room, moving across the stream at 0.1 m/s and turning about
   the vertical at 1 rad/s (so its faces' shares change every step);
-- "static": a fixed cylinder (radius 0.06 m, axis vertical) in mid-room (its shares are computed once, on the host);
+- "static": a fixed cylinder (radius 0.06 m, axis vertical, centred at (0.25, 0.25, 0) so that it stands in the
+  lower half of the room, up to z = 0.25 m; its shares are computed once, on the host);
 - "particles": a water blob (0.1 m cube, MPM on a 16³ grid, gravity off) crossing the stream at 0.1 m/s; its
   steps include the particles' own MPM step, the same in both modes.
 Each solid is run with `tool_faces` / `static_faces` / `particle_faces` "cells" and "fractions", alternating (cells,

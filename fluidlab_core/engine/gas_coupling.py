@@ -39,7 +39,8 @@ their derivative is zero almost everywhere, and the gradient carries none (a fin
 boundary sees a jump instead). With fractional particles the shares and velocities are trilinear deposits, and
 their gradient (Taichi's autodiff of deposit_faces and particle_faces_finish, after the shares' own gradient from
 the projection's adjoint) reaches the particles' positions and velocities; it has kinks where a particle crosses a
-face lattice's plane and where a share reaches 0 (w_g = α), and shares under 1e-3 are set to 0 (a step of 1e-3). The dragged particles' own cells are not solid, so the two directions touch
+face lattice's plane and where a share reaches 0 (w_g = α), and shares under 1e-3 are set to 0 (a step of 1e-3).
+The dragged particles' own cells are not solid, so the two directions touch
 disjoint particles and the in-place drag leaves what the solids' backward reads unchanged.
 """
 import numpy as np
@@ -248,10 +249,10 @@ class CoupledGas:
             cp.drag_wind.grad(self.state.x, s1, a)
             cp.add_velocity_grad(*self.carry_v)
         self._set_tools(s1, twist)
-        solid_grad = (lambda: cp.particles_grad(self.state, s1)) if gas.spec.particles_block else None
+        particles_grad = (lambda: cp.particles_grad(self.state, s1)) if gas.spec.particles_block else None
         tool_g, bad = gas.backward_substeps(kept[:self.substeps], self.sub_dt, (self.first_step + g) * self.substeps,
                                             self.carry_v, self.carry_q, particles=self._particles(s1),
-                                            particles_grad=solid_grad)
+                                            particles_grad=particles_grad)
         if bad:
             raise NonFiniteGradientError(f"the gas gradient ({', '.join(bad)}) became NaN or infinite going back "
                                          f"through step {self.first_step + g + 1}")
