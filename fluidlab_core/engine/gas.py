@@ -370,10 +370,22 @@ class GasSolver:
         return vf, vg
 
     @ti.func
+    def _interp_value(self, f: ti.template(), x, off0: ti.template(), off1: ti.template(), off2: ti.template()):
+        """Trilinear interpolation of face component f at world point x, the value alone (no clamp range: the
+        backtrace's velocity samples need none, and the range's min/max would only enlarge the kernels that
+        Taichi differentiates)."""
+        nshape = ti.static(f.shape)
+        base, frac = self._weights(nshape, x, off0, off1, off2)
+        value = 0.0
+        for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
+            value += self._corner_weight(frac, a, b, c) * self._corner(f, nshape, base, a, b, c, -1)
+        return value
+
+    @ti.func
     def _velocity_at(self, st: ti.template(), x):
-        ux, _, _ = self._interp(self.V[st][0], x, 0.0, 0.5, 0.5, -1)
-        uy, _, _ = self._interp(self.V[st][1], x, 0.5, 0.0, 0.5, -1)
-        uz, _, _ = self._interp(self.V[st][2], x, 0.5, 0.5, 0.0, -1)
+        ux = self._interp_value(self.V[st][0], x, 0.0, 0.5, 0.5)
+        uy = self._interp_value(self.V[st][1], x, 0.5, 0.0, 0.5)
+        uz = self._interp_value(self.V[st][2], x, 0.5, 0.5, 0.0)
         return ti.Vector([ux, uy, uz])
 
     @ti.func
@@ -792,38 +804,71 @@ class GasSolver:
             hi = ti.max(hi, v)
         return lo, hi
 
-    @ti.kernel
-    def local_range(self, src: ti.template()):
+    def local_range(self, src: int):
         """The continuous limiter's φ⁻, φ⁺: the minimum and maximum of stage src's values over each sample's
-        3 × 3 × 3 neighbours (clamped at the grid's edge), into Vnlo/Vnhi and Qnlo/Qnhi."""
-        for d in ti.static(range(3)):
-            for I in ti.grouped(self.V[src][d]):
-                lo, hi = self._range27(self.V[src][d], I, ti.static(self.face_shapes[d]), -1)
-                self.Vnlo[d][I] = lo
-                self.Vnhi[d][I] = hi
+        3 × 3 × 3 neighbours (clamped at the grid's edge), into Vnlo/Vnhi and Qnlo/Qnhi. A kernel per face axis
+        and one for the cells, as advect_sl."""
+        for d in range(3):
+            self._range_faces(d, src)
+        self._range_cells(src)
+
+    def local_range_grad(self, src: int):
+        """The adjoint of local_range."""
+        self._range_cells.grad(src)
+        for d in (2, 1, 0):
+            self._range_faces.grad(d, src)
+
+    @ti.kernel
+    def _range_faces(self, d: ti.template(), src: ti.template()):
+        for I in ti.grouped(self.V[src][d]):
+            lo, hi = self._range27(self.V[src][d], I, ti.static(self.face_shapes[d]), -1)
+            self.Vnlo[d][I] = lo
+            self.Vnhi[d][I] = hi
+
+    @ti.kernel
+    def _range_cells(self, src: ti.template()):
         for I in ti.grouped(self.solid):
             for c in ti.static(range(self.n_q)):
                 lo, hi = self._range27(self.Q[src], I, ti.static(self.shape), c)
                 self.Qnlo[c, I[0], I[1], I[2]] = lo
                 self.Qnhi[c, I[0], I[1], I[2]] = hi
 
-    @ti.kernel
-    def advect_sl(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(), keep: ti.template()):
+    def advect_sl(self, src: int, vel: int, dst: int, dt: float, keep: bool):
         """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
         traces forward). With `keep`, each point's clamp range for MacCormack goes to Vlo/Vhi, Qlo/Qhi: the range of
-        the 8 values it interpolated, or with the continuous limiter the interpolated φ⁻, φ⁺ (local_range)."""
-        for d in ti.static(range(3)):
-            for I in ti.grouped(self.V[dst][d]):
-                x = self._backtrace(vel, self._face_pos(d, I), dt)
-                o = [0.5, 0.5, 0.5]
-                o[d] = 0.0
-                value, lo, hi = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
-                self.V[dst][d][I] = value
-                if ti.static(keep):
-                    if ti.static(self.continuous):
-                        lo, hi = self._interp_pair(self.Vnlo[d], self.Vnhi[d], x, o[0], o[1], o[2], -1)
-                    self.Vlo[d][I] = lo
-                    self.Vhi[d][I] = hi
+        the 8 values it interpolated, or with the continuous limiter the interpolated φ⁻, φ⁺ (local_range).
+        A kernel per face axis and one for the cells: Taichi's compile time grows faster than a kernel's length,
+        most of all for reverse-mode kernels (mostly in Taichi's store-to-load forwarding pass). Measured on
+        this project's 2-core machine (12³ plume, float32, empty cache, the `keep` instance): its reverse mode
+        compiled in 87 s as one kernel, 74 s with value-only velocity samples (_interp_value), 43.5 s split."""
+        for d in range(3):
+            self._advect_faces(d, src, vel, dst, dt, keep)
+        self._advect_cells(src, vel, dst, dt, keep)
+
+    def advect_sl_grad(self, src: int, vel: int, dst: int, dt: float, keep: bool):
+        """The adjoint of advect_sl (its kernels' reverse mode, in reverse order)."""
+        self._advect_cells.grad(src, vel, dst, dt, keep)
+        for d in (2, 1, 0):
+            self._advect_faces.grad(d, src, vel, dst, dt, keep)
+
+    @ti.kernel
+    def _advect_faces(self, d: ti.template(), src: ti.template(), vel: ti.template(), dst: ti.template(),
+                      dt: ti.template(), keep: ti.template()):
+        for I in ti.grouped(self.V[dst][d]):
+            x = self._backtrace(vel, self._face_pos(d, I), dt)
+            o = [0.5, 0.5, 0.5]
+            o[d] = 0.0
+            value, lo, hi = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
+            self.V[dst][d][I] = value
+            if ti.static(keep):
+                if ti.static(self.continuous):
+                    lo, hi = self._interp_pair(self.Vnlo[d], self.Vnhi[d], x, o[0], o[1], o[2], -1)
+                self.Vlo[d][I] = lo
+                self.Vhi[d][I] = hi
+
+    @ti.kernel
+    def _advect_cells(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(),
+                      keep: ti.template()):
         for I in ti.grouped(self.solid):
             x = self._backtrace(vel, self._cell_pos(I), dt)
             for c in ti.static(range(self.n_q)):
@@ -1315,12 +1360,12 @@ class GasSolver:
             self.curl.grad(S2)
         if self.spec.advection == "maccormack":
             self.maccormack.grad(S1, HAT, TLD, S2)
-            self.advect_sl.grad(HAT, S1, TLD, -dt, False)
-            self.advect_sl.grad(S1, S1, HAT, dt, True)
+            self.advect_sl_grad(HAT, S1, TLD, -dt, False)
+            self.advect_sl_grad(S1, S1, HAT, dt, True)
             if self.continuous:
-                self.local_range.grad(S1)
+                self.local_range_grad(S1)
         else:
-            self.advect_sl.grad(S1, S1, S2, dt, False)
+            self.advect_sl_grad(S1, S1, S2, dt, False)
         self.sources_stage.grad(S0, S1, dt)
         if particles_grad is not None and not self.frac_particles:
             # every stage that reads solid_v (sources, override) is behind us, and boundaries.grad (which takes
