@@ -461,10 +461,10 @@ class GasSolver:
     def _solid_phi(self, d: ti.template(), I, corner: ti.template()):
         """The signed distance (m) to the solids that enter by fractions at face I of axis d: its centre (corner
         = -1) or one of its four corners (0: −e1 −e2, 1: +e1 −e2, 2: +e1 +e2, 3: −e1 +e2, e1 and e2 half a cell
-        along the next two axes); and 1 where the nearest is a tool, 0 where it is a static."""
+        along the next two axes); and the nearest tool's index where a tool is nearest, −1 where a static is."""
         a1, a2 = ti.static((d + 1) % 3, (d + 2) % 3)
         phi = 1e9
-        is_tool = 0
+        tool = -1
         if ti.static(self.frac_statics):
             if ti.static(corner < 0):
                 phi = self.static_phi_f[d][I]
@@ -482,11 +482,11 @@ class GasSolver:
                 s1 = ti.static(-1.0 if corner == 0 or corner == 3 else 1.0)
                 s2 = ti.static(-1.0 if corner == 0 or corner == 1 else 1.0)
                 x += h * (s1 * ti.Vector.unit(3, a1, self.real) + s2 * ti.Vector.unit(3, a2, self.real))
-            pt, _ = self._tool_phi(x)
+            pt, t = self._tool_phi(x)
             if pt < phi:
                 phi = pt
-                is_tool = 1
-        return phi, is_tool
+                tool = t
+        return phi, tool
 
     @ti.func
     def _tool_phi(self, x):
@@ -593,10 +593,9 @@ class GasSolver:
             elif hi_other:
                 us = self.solid_v[hi_cell][d]
             elif ti.static(self.frac_tools):  # the nearest fractional solid's motion: a tool's, or a static's (0)
-                _, is_tool = self._solid_phi(d, I, -1)
-                if is_tool == 1:
+                _, t = self._solid_phi(d, I, -1)
+                if t >= 0:
                     x = self._face_pos(d, I)
-                    _, t = self._tool_phi(x)
                     for k in ti.static(range(len(self._tool_sdf))):
                         if t == k:
                             us = (self.tool_v[k] + self.tool_w[k].cross(x - self.tool_p[k]))[d]
