@@ -100,14 +100,48 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
         offline_cache=True,
         kernel_profiler=bool(os.environ.get("FLUIDLAB_PROFILE")),
     )
+    if not os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES"):
+        kwargs["offline_cache_max_size_of_files"] = OFFLINE_CACHE_BYTES
     if seed is not None:
         kwargs["random_seed"] = int(seed)
     if cpu_threads:
         kwargs["cpu_max_num_threads"] = int(cpu_threads)
     ti.init(**kwargs)
+    _lighter_source_positions(ti)
     _generation += 1
     _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, fast_compile, _generation)
     return _config
+
+
+# Taichi keeps compiled kernels on disk (its offline cache) and by default, past 100 MB, deletes the least recently
+# used quarter of it when a program ends (policy "lru", factor 0.25). The package's kernels are specialised to their
+# fields' shapes, so a few tasks at two sizes, the gas solver and the gradients pass 100 MB (the test suite leaves
+# this machine's cache at that cap), and a process that ends (a test worker, a command line, a ROS node) may evict
+# kernels that the next one must compile again. 1 GiB, unless TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES says otherwise.
+OFFLINE_CACHE_BYTES = 1 << 30
+
+
+def _lighter_source_positions(ti) -> None:
+    """Taichi 1.7's frontend attaches to every statement of every kernel it transforms a debug string: the statement's
+    source lines wrapped to 80 columns with a caret line under them (ASTTransformerContext.get_pos_info, through
+    textwrap). That was about 40 % of the Python side of compiling (the gas plume's first step with a warm kernel
+    cache: 11.1 s, 6.9 s with this), paid by every process, since the cache keeps compiled kernels and not the
+    transformed source. This keeps the file, line, function and source line of each statement, without the wrapping
+    and the carets. Applied only to the Taichi minor version it was written against; otherwise nothing changes."""
+    try:
+        from taichi.lang.ast import ast_transformer_utils as utils
+    except ImportError:  # pragma: no cover - another Taichi layout
+        return
+    ctx = getattr(utils, "ASTTransformerContext", None)
+    if tuple(ti.__version__[:2]) != (1, 7) or ctx is None or getattr(ctx, "_fluidlab_positions", False):
+        return
+
+    def get_pos_info(self, node):
+        return (f'File "{self.file}", line {node.lineno + self.lineno_offset}, in {self.func.func.__name__}:\n'
+                f"{self.src[node.lineno - 1]}\n")
+
+    ctx.get_pos_info = get_pos_info
+    ctx._fluidlab_positions = True
 
 
 def compiled_fast(method):
