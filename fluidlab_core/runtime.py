@@ -16,6 +16,9 @@ level to 1 for the rest of the process), and at level 0 Taichi 1.7.4's code gene
 (an LLVM "Instruction does not dominate all uses" abort, seen on a small kernel that adds numpy gradients into a
 field's .grad). For the test suite and short jobs, whose time goes into compiling; long optimisations keep
 the default.
+
+Every `init` also raises Taichi's kernel cache to 1 GiB (OFFLINE_CACHE_BYTES) and, on Taichi 1.7, attaches lighter
+debug strings to the statements it compiles (_lighter_source_positions): both for compile time, explained there.
 """
 from __future__ import annotations
 
@@ -115,9 +118,9 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
 
 # Taichi keeps compiled kernels on disk (its offline cache) and by default, past 100 MB, deletes the least recently
 # used quarter of it when a program ends (policy "lru", factor 0.25). The package's kernels are specialised to their
-# fields' shapes, so a few tasks at two sizes, the gas solver and the gradients pass 100 MB (the test suite leaves
-# this machine's cache at that cap), and a process that ends (a test worker, a command line, a ROS node) may evict
-# kernels that the next one must compile again. 1 GiB, unless TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES says otherwise.
+# fields' shapes, so a few tasks at two sizes, the gas solver and the gradients pass 100 MB (a cold run of the test
+# suite did within the run), and a process that ends (a test worker, a command line, a ROS node) may evict kernels
+# that the next one must compile again. 1 GiB, unless TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES says otherwise.
 OFFLINE_CACHE_BYTES = 1 << 30
 
 
