@@ -7,7 +7,7 @@
 #   1. the device: nvidia-smi, Taichi on CUDA;
 #   2. the engine's tests on CUDA (FLUIDLAB_TEST_ARCH=cuda, conftest.py): the `cuda` test (every material, a
 #      static and a tool against the CPU), the API, liquid, viscous, solid and gas physics tests (GPU_CHECK_TESTS
-#      adds more files, e.g. tests/test_gradients.py, for a longer BUDGET);
+#      replaces that list, e.g. with tests/test_gradients.py for a longer BUDGET);
 #   3. bench/bench_mpm.py on CUDA;
 #   4. bench/bench_gas.py on CUDA at 64³ and 128³, PhiFlow beside it on the same GPU (torch CUDA);
 #   5. bench/bench_sizes.py at paper size on CUDA (ms per simulated step, forward and gradient);

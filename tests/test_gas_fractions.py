@@ -5,20 +5,11 @@ to see the figures each test prints. A file of its own beside tests/test_gas.py,
 workers under `pytest -n 2 --dist loadfile`.
 """
 import numpy as np
-import pytest
 
 import fluidlab_core as fl
 from fluidlab_core import losses
-from tests import conftest
 from tests.conftest import report
-from tests.test_gas import _assert_matches_differences, slab
-
-
-@pytest.fixture
-def f64():
-    conftest.init("f64")
-    yield
-    conftest.init("f32")
+from tests.test_gas import _assert_matches_differences, f64, slab  # noqa: F401 (f64: the float64 fixture)
 
 
 # --- tools entering by face fractions (tool_faces="fractions") ------------------------------------------------------

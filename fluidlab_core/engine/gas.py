@@ -807,15 +807,24 @@ class GasSolver:
         """The continuous limiter's φ⁻, φ⁺: the minimum and maximum of stage src's values over each sample's
         3 × 3 × 3 neighbours (clamped at the grid's edge), into Vnlo/Vnhi and Qnlo/Qnhi. A kernel per face axis
         and one for the cells, as advect_sl."""
-        for d in range(3):
-            self._range_faces(d, src)
-        self._range_cells(src)
+        self._faces_and_cells(self._range_faces, self._range_cells, False, src)
 
     def local_range_grad(self, src: int):
         """The adjoint of local_range."""
-        self._range_cells.grad(src)
-        for d in (2, 1, 0):
-            self._range_faces.grad(d, src)
+        self._faces_and_cells(self._range_faces, self._range_cells, True, src)
+
+    @staticmethod
+    def _faces_and_cells(faces, cells, grad: bool, *args):
+        """A stage split into a kernel per face axis (faces(d, *args)) and one for the cells (cells(*args)): all
+        four forward, or their reverse modes in reverse order."""
+        if grad:
+            cells.grad(*args)
+            for d in (2, 1, 0):
+                faces.grad(d, *args)
+        else:
+            for d in range(3):
+                faces(d, *args)
+            cells(*args)
 
     @ti.kernel
     def _range_faces(self, d: ti.template(), src: ti.template()):
@@ -840,15 +849,11 @@ class GasSolver:
         most of all for reverse-mode kernels (mostly in Taichi's store-to-load forwarding pass). Measured on
         this project's 2-core machine (12³ plume, float32, empty cache, the `keep` instance): its reverse mode
         compiled in 87 s as one kernel, 74 s with value-only velocity samples (_interp_value), 43.5 s split."""
-        for d in range(3):
-            self._advect_faces(d, src, vel, dst, dt, keep)
-        self._advect_cells(src, vel, dst, dt, keep)
+        self._faces_and_cells(self._advect_faces, self._advect_cells, False, src, vel, dst, dt, keep)
 
     def advect_sl_grad(self, src: int, vel: int, dst: int, dt: float, keep: bool):
-        """The adjoint of advect_sl (its kernels' reverse mode, in reverse order)."""
-        self._advect_cells.grad(src, vel, dst, dt, keep)
-        for d in (2, 1, 0):
-            self._advect_faces.grad(d, src, vel, dst, dt, keep)
+        """The adjoint of advect_sl."""
+        self._faces_and_cells(self._advect_faces, self._advect_cells, True, src, vel, dst, dt, keep)
 
     @ti.kernel
     def _advect_faces(self, d: ti.template(), src: ti.template(), vel: ti.template(), dst: ti.template(),
