@@ -104,6 +104,14 @@ class GasSpec:
     def kappa(self) -> float:
         return 1.0 / self.air_density if self.buoyancy_smoke is None else self.buoyancy_smoke
 
+    def temperature_range(self) -> tuple[float, float]:
+        """(low, high) K of the temperatures the gas can hold: the initial and ambient ones and the sources' (a
+        picture's fixed colour scale)."""
+        values = [self.ambient_temperature, self.initial_temperature or self.ambient_temperature]
+        values += [s.temperature for s in self.sources if s.temperature is not None]
+        lo, hi = min(values), max(values)
+        return (lo, hi) if hi > lo else (lo - 1.0, hi + 1.0)
+
 
 @dataclass
 class GasState:

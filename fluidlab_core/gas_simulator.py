@@ -461,11 +461,7 @@ class GasSimulator:
     # --- pictures and viewers ---------------------------------------------------------------------------------------
     def temperature_range(self) -> tuple[float, float]:
         """(low, high) K of the temperatures the scene can hold: the initial and ambient ones and the sources'."""
-        spec = self.spec
-        values = [spec.ambient_temperature, spec.initial_temperature or spec.ambient_temperature]
-        values += [s.temperature for s in spec.sources if s.temperature is not None]
-        lo, hi = min(values), max(values)
-        return (lo, hi) if hi > lo else (lo - 1.0, hi + 1.0)
+        return self.spec.temperature_range()
 
     def render(self, path=None, view="iso", size=(800, 600), title=None, field: str = "temperature", slice_axis=2,
                slice_at=None, points=None, **_):
@@ -479,8 +475,8 @@ class GasSimulator:
         if field == "temperature":
             vmin, vmax = (t - 273.15 for t in self.temperature_range())
         pts = points if points is not None else getattr(self, "render_points", None)
-        return render.gas_slice(self, path, field=field, axis=slice_axis, at=slice_at, size=size, title=title,
-                                vmin=vmin, vmax=vmax, points=pts)
+        return render.gas_slice(self.view(), self.spec, path, field=field, axis=slice_axis, at=slice_at, size=size,
+                                title=title, vmin=vmin, vmax=vmax, points=pts, tools=self._tool_p, time=self.time)
 
     def _slice_cells(self) -> np.ndarray:
         """Flat indices of the gas cells of the horizontal mid-plane (what viewers draw)."""

@@ -411,12 +411,13 @@ def render(
     return np.asarray(image).copy()
 
 
-def gas_slice(sim, path=None, field: str = "temperature", axis: int = 2, at: float | None = None,
+def gas_slice(view, spec, path=None, field: str = "temperature", axis: int = 2, at: float | None = None,
               size: tuple[int, int] = (800, 600), title: str | None = None, vmin=None, vmax=None,
-              points=None) -> np.ndarray:
+              points=None, tools=None, time: float = 0.0) -> np.ndarray:
     """A slice of a gas field as a picture: the cells of the plane `axis` = `at` (m; default the middle of the gas
     box), coloured by `field` ("temperature" in °C, "smoke", "speed", or a named scalar), solids grey, the tools'
-    origins marked, optional `points` (P, 3) (e.g. sensors) as dots. World axes label the picture (REP-103).
+    origins `tools` (T, 3) m marked, optional `points` (P, 3) (e.g. sensors) as dots. World axes label the picture
+    (REP-103). `view` is the gas's fluidlab_core.gas.GasView, `spec` its GasSpec, `time` (s) goes into the title.
     Returns the RGB image (H, W, 3) uint8 and writes it as a PNG if `path` is given."""
     import io
 
@@ -425,8 +426,6 @@ def gas_slice(sim, path=None, field: str = "temperature", axis: int = 2, at: flo
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    view = sim.view()
-    spec = sim.spec
     shape = view.temperature.shape
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2 (x, y, z), got {axis!r}")
@@ -451,8 +450,7 @@ def gas_slice(sim, path=None, field: str = "temperature", axis: int = 2, at: flo
     cmap.set_bad((0.55, 0.55, 0.55))
     im = ax.imshow(shown.T, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
     fig.colorbar(im, ax=ax, label=f"{field} ({unit})" if unit else field)
-    for i, t in enumerate(sim.tool_specs):
-        p = sim._tool_p[i]
+    for p in np.asarray(tools if tools is not None else np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3):
         ax.plot(p[other[0]], p[other[1]], "k^", markersize=8)
     if points is not None:
         pts = np.asarray(points).reshape(-1, 3)
@@ -460,7 +458,7 @@ def gas_slice(sim, path=None, field: str = "temperature", axis: int = 2, at: flo
     names = "xyz"
     ax.set_xlabel(f"{names[other[0]]} (m)")
     ax.set_ylabel(f"{names[other[1]]} (m)")
-    ax.set_title(title or f"{field}, {names[axis]} = {lo + (k + 0.5) * spec.dx:.3f} m, t = {sim.time:.2f} s")
+    ax.set_title(title or f"{field}, {names[axis]} = {lo + (k + 0.5) * spec.dx:.3f} m, t = {time:.2f} s")
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)

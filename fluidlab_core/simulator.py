@@ -414,11 +414,21 @@ class Simulator:
         return self._rows(self.model.mass.to_numpy(), h)
 
     # --- pictures ---------------------------------------------------------------------------------------
-    def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None):
+    def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None, gas="temperature",
+               gas_axis: int = 2, gas_at: float | None = None):
         """A PNG picture of the current state (particles coloured by material, statics in grey and cut away on
         the camera's side, the domain box drawn), written to `path` if given; returns the image as an (H, W, 3)
-        uint8 array. `view` is a name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg)."""
+        uint8 array. `view` is a name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg).
+
+        In a scene with gas (Scene.add_gas beside particles) the picture has a second panel on the right, of the
+        same size: a slice of the gas field `gas` ("temperature" on the scene's fixed colour scale, "smoke",
+        "speed" or a named scalar) across axis `gas_axis` at `gas_at` m (default the gas box's middle), as
+        fluidlab_core.render.gas_slice draws it; gas=None leaves it out."""
         from fluidlab_core.render import Layer, render, view_axes
+
+        if self.gas is not None and gas:
+            picture = self.render(None, view, size, title, bodies, gas=None)
+            return _beside_gas_slice(self, picture, path, gas, gas_axis, gas_at, size)
 
         if self._static_points is None:
             self._static_points = [st.shape.sample(self.scene.dx) for st in self.scene.statics]
@@ -510,3 +520,27 @@ class Simulator:
         state.check_shapes(self.n_particles, len(self.tool_specs), self.model.n_emitters)
         self.state.write(0, state)
         self.step_count = int(state.step)
+
+
+def _beside_gas_slice(sim, picture: np.ndarray, path, field: str, axis: int, at, size) -> np.ndarray:
+    """The particles' `picture` with a slice of the coupled gas's `field` beside it, of the same height (render)."""
+    from PIL import Image
+
+    from fluidlab_core.gas import GasView
+    from fluidlab_core.render import _write_png_atomic, gas_slice
+
+    spec = sim.gas.spec
+    view = GasView.of(sim.gas_state(), spec, sim.gas.solid.to_numpy() != 0)
+    vmin = vmax = None
+    if field == "temperature":
+        vmin, vmax = (t - 273.15 for t in spec.temperature_range())
+    position, _ = sim.state.read_tools(0)
+    panel = gas_slice(view, spec, None, field=field, axis=axis, at=at, size=size, vmin=vmin, vmax=vmax,
+                      tools=position, time=sim.time)
+    if panel.shape[0] != picture.shape[0]:
+        height = picture.shape[0]
+        panel = np.asarray(Image.fromarray(panel).resize((round(panel.shape[1] * height / panel.shape[0]), height)))
+    both = np.concatenate([picture, panel], axis=1)
+    if path is not None:
+        _write_png_atomic(Image.fromarray(both), path)
+    return both

@@ -240,16 +240,16 @@ def test_smoke_plume_rises_and_advection_keeps_the_smoke():
 def test_a_heater_makes_a_plume_that_a_sink_takes_beside_a_moving_mesh_tool(tmp_path):
     """A heater on the floor of a closed 20 × 20 × 30 cm box (a disc source, r = 3 cm: 40 K above the ambient, smoke
     5 g/m³ and a named scalar "dye" of 1) makes a plume that rises (Boussinesq buoyancy); a sink (a box of 9 cm
-    across, 11.5–20.5 cm up, over the plume's +x half) takes the smoke and the dye that reach it; a tool made from a mesh (a trimesh box
-    written to a file) moves through the plume as a solid boundary. Checked each step:
+    across, 11.5–20.5 cm up, over the plume's +x half) takes the smoke and the dye that reach it; a tool made from a
+    mesh (a trimesh box written to a file) moves through the plume as a solid boundary. Checked each step:
     - the projection: ‖D u‖₂ / ‖D ũ‖₂ within the solve's tolerance, also in the gas cells next to the mesh tool;
     - the mesh tool's solid cells are where its mesh is as it moves (to half a cell);
     - the dye, advected by the same scheme from the same source as the smoke, is the smoke / 5 g/m³ everywhere
       (MacCormack with its clamp is linear in the scalar's scale): the named scalar is advected;
     - the sink's inner cells (two cells from its walls, farther than the flow moves in a step) hold no smoke and no
       dye after every step, while the cells beside it do;
-    and at the end: the smoke's centre has risen (56 mm in 1 s measured; more than 40 mm asserted), the air above the heater rises and is warm, no
-    value leaves its source's range."""
+    and at the end: the smoke's centre has risen (56 mm in 1 s measured; more than 40 mm asserted), the air above
+    the heater rises and is warm, no value leaves its source's range."""
     import trimesh
 
     mesh_path = tmp_path / "paddle.stl"
@@ -506,12 +506,15 @@ def _with_scalars(state, dq):
     return g
 
 
-def test_gas_and_particles_move_each_other():
+def test_gas_and_particles_move_each_other(tmp_path):
     """A wind of 0.5 m/s (an inflow wall) through a box holding a light foam body and, downstream, a water blob
     thrown sideways across it, with gravity off (engine/gas_coupling.py). The gas drags the foam (drag rate k = 20
     /s) to U (1 − exp(−k t)) = 0.49 m/s after 0.2 s (within 5 %; upstream of the blob the wind is the inflow's,
     by continuity), and not the blob, which it was not asked to drag; the blob's cells are solid for the gas,
-    whose faces there move with the blob."""
+    whose faces there move with the blob. Its picture (Simulator.render) has the particles on the left and a slice
+    of the gas on the right, of the same size."""
+    from PIL import Image
+
     from fluidlab_core import materials as M
 
     scene = fl.Scene(lower=(0, 0, 0), upper=(0.2, 0.1, 0.1), grid_res=20, dt=4e-3, substeps=1, gravity=(0, 0, 0))
@@ -536,6 +539,13 @@ def test_gas_and_particles_move_each_other():
     assert abs(foam_vx / expected - 1.0) < 0.05
     assert blob_cells.sum() > 4 and inner.any()
     assert abs(float(uz[inner].mean()) - blob_vz) < 0.02
+    picture = sim.render(tmp_path / "coupled.png", size=(320, 240), gas="speed")
+    particles = sim.render(size=(320, 240), gas=None)
+    assert picture.shape == (240, 640, 3) and particles.shape == (240, 320, 3)
+    assert np.array_equal(picture[:, :320], particles)
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "coupled.png").convert("RGB")), picture)
+    panel = picture[:, 320:].reshape(-1, 3)
+    assert len(np.unique(panel, axis=0)) > 20  # the slice's colour map, its bar and labels: not a blank panel
 
 
 def test_gradients_through_the_gas_particle_coupling_match_finite_differences(f64):
