@@ -22,7 +22,8 @@ def small():
 
 
 def test_sizes_follow_the_paper_and_keep_the_episode():
-    """The paper's gas grid is 128 cells across the house and 9 high (its 128 × 9 × 128); every size runs the same
+    """The paper size has the paper's 128 cells along the house and its 9 of height (its 128 × 9 × 128, y up), over
+    the house's depth only (87 cells) rather than the paper's square domain; every size runs the same
     6 s episode, and each step's CFL number for the 1 m/s jet stays under the task's max_cfl."""
     for size, cells in (("small", 40), ("medium", 64), ("paper", 128)):
         task = tasks.make(NAME, size)

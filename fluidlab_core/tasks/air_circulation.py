@@ -19,7 +19,9 @@ by the arm from above and turned about the vertical (the action: its yaw rate ω
 (a gas source carried by the tool, 60 mm wide and the house's height, in front of it along the tool's +x) blows
 cool air, T_COOL = 18 °C, at 1 m/s. Air: ν = 1.5e-5 m²/s, Boussinesq buoyancy; gas solver
 fluidlab_core/engine/gas.py. An episode is 6 s at every size (small 240 steps of 25 ms on a 40-cell grid,
-medium 400 of 15 ms on 64 cells, paper 800 of 7.5 ms on 128 × 87 × 9 cells, the paper's 128 × 9 × 128).
+medium 400 of 15 ms on 64 cells, paper 800 of 7.5 ms on 128 × 87 × 9 cells. The paper's grid is
+128 × 9 × 128 in its y-up frame (x, height, depth) over a square domain; ours has its 128 cells along the house's
+length and its 9 cells of height, and covers only the house's depth (87 cells), not the square around it).
 
 Loss: 27 sensors at mid-height, 9 per room on a 3 × 3 grid. After each step k,
 
