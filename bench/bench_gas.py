@@ -4,10 +4,12 @@ same plume to the same pressure tolerance in the same process.
     python bench/bench_gas.py [--sizes 64 128] [--steps 8 3] [--arch cpu|cuda] [--threads 1] [--no-phiflow]
         [--report-only]
 
-The plume (both solvers): a closed cube of side 0.5 m, a heater (a sphere of radius 0.05 m centred 0.05 m above the
-floor) that sets the temperature excess to 30 K inside it every step, Boussinesq buoyancy a = g β ΔT with
-β = 1/293.15 K, MacCormack advection of the temperature and of the velocity, a pressure projection to a relative
-residual of 1e-6, dt = 0.02 s. Ours also carries a smoke density (its second scalar); PhiFlow carries one scalar.
+The plume (both solvers): a closed cube of side 0.5 m, a heater centred 0.05 m above the floor that sets the
+temperature excess to 30 K inside it every step (ours: a disc source of radius 0.05 m and half thickness 0.05 m, a
+soft-edged upright cylinder; PhiFlow: a soft sphere of radius 0.05 m, its nearest shape: the heated volumes differ
+by about a third, the grids and what a step computes do not), Boussinesq buoyancy a = g β ΔT with β = 1/293.15 K,
+MacCormack advection of the temperature and of the velocity, a pressure projection to a relative residual of 1e-6,
+dt = 0.02 s. Ours also carries a smoke density (its second scalar); PhiFlow carries one scalar.
 Ours: fluidlab_core's GasSimulator (MGPCG; fields float32, the solve float64). PhiFlow: `phiflow` (3.4) on its
 torch backend in float64 (its float32 CG does not reach 1e-6: it stalled at 2e-5 after 2000 iterations at 64³),
 `Solve('CG', 1e-6, 0)` for the pressure (unpreconditioned CG on an explicit sparse matrix). At 128³ a PhiFlow step
