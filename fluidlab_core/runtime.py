@@ -58,7 +58,8 @@ def _cuda_available(ti) -> bool:
 
 
 def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
-         cpu_threads: int | None = None, debug: bool = False, fast_compile: bool | None = None) -> RuntimeConfig:
+         cpu_threads: int | None = None, debug: bool = False, fast_compile: bool | None = None,
+         fresh: bool = False) -> RuntimeConfig:
     """Choose the Taichi backend.
 
     arch: "cpu" (default), "cuda", or "auto" (CUDA when a device is present, CPU otherwise).
@@ -67,6 +68,7 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
     cpu_threads: threads for the CPU backend (default: all cores, or FLUIDLAB_CPU_THREADS).
     fast_compile: compile the solvers' forward kernels at Taichi's opt_level 0 (default: off, or
     FLUIDLAB_FAST_COMPILE=1); see the module's docstring.
+    fresh: reset Taichi even when the arguments are those already in force (see `reset`).
     """
     global _config, _generation
     if arch not in ARCHES:
@@ -81,8 +83,9 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
             raise ValueError(f"FLUIDLAB_FAST_COMPILE must be 0 or 1, got {flag!r}")
         fast_compile = flag == "1"
     fast_compile = bool(fast_compile)
-    if _config is not None and (_config.arch, _config.precision, _config.seed, _config.cpu_threads,
-                                _config.fast_compile) == (arch, precision, seed, cpu_threads, fast_compile):
+    same = _config is not None and (_config.arch, _config.precision, _config.seed, _config.cpu_threads,
+                                    _config.fast_compile) == (arch, precision, seed, cpu_threads, fast_compile)
+    if same and not fresh:
         return _config
 
     import taichi as ti
@@ -114,6 +117,23 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
     _generation += 1
     _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, fast_compile, _generation)
     return _config
+
+
+def reset() -> RuntimeConfig:
+    """Reset Taichi and initialise it again as it was (or with the defaults): every field and compiled kernel of the
+    process is dropped, and simulators built before raise RuntimeError when used.
+
+    What it is for: Taichi's offline cache finds a compiled kernel by the kernel's code and the identities of the
+    fields it touches (their SNode ids and tree ids, which count up from the start of the program), so a scene
+    compiles again whenever other fields were allocated before it, though the same scene compiled earlier in the
+    same process or in another one. After a reset the ids start from zero, so a scene built right after one has the
+    same field identities wherever it is built, and its kernels load from the cache when the same build ran before
+    (the held disc of tests/test_physics_solids.py: 3.5 s to 1.1 s a run from the second on). The test suite resets
+    before each run of a sweep that builds the same scene again (tests/conftest.py, `fresh`)."""
+    c = _config
+    if c is None:
+        return init(fresh=True)
+    return init(c.arch, c.precision, c.seed, c.cpu_threads, fast_compile=c.fast_compile, fresh=True)
 
 
 # Taichi keeps compiled kernels on disk (its offline cache) and by default, past 100 MB, deletes the least recently

@@ -7,7 +7,7 @@ import fluidlab_core as fl
 from fluidlab_core import materials as M
 from fluidlab_core.shapes import Box
 from fluidlab_core.apps import validation
-from tests.conftest import report
+from tests.conftest import fresh, report
 
 G = 9.81
 
@@ -196,8 +196,8 @@ def test_magnus_a_spinning_disc_in_water_is_lifted_and_deflects_along_omega_cros
     The ratio must lie between 0.2 and 1.2, as for the gas solver's spinning cylinder.
     Held only along x and in spin, free across (free_across), it deflects along ω × U, more with more spin: +11 mm
     at α = 1 and +17.6 mm at α = 2 after 0.26 s, 0.3 mm without spin (bench/results/magnus_mpm.txt)."""
-    held = {a: validation.magnus_held(res=32, alpha=a) for a in (0.0, 1.0, 2.0)}
-    free = {a: validation.magnus_held(res=32, alpha=a, free_across=True) for a in (0.0, 1.0, 2.0)}
+    held = {a: fresh(validation.magnus_held, res=32, alpha=a) for a in (0.0, 1.0, 2.0)}
+    free = {a: fresh(validation.magnus_held, res=32, alpha=a, free_across=True) for a in (0.0, 1.0, 2.0)}
     lift = {a: r["lift"] for a, r in held.items()}
     ratio = {a: lift[a] / held[a]["kutta_joukowski"] for a in (1.0, 2.0)}
     y = {a: float(r["displacement"][-1, 1]) for a, r in free.items()}
@@ -220,7 +220,7 @@ def test_magnus_a_spinning_ball_in_water_is_lifted_along_omega_cross_u():
     α = 1 and 2, −0.08 without spin, drag coefficient 18; at 32 cells the bench measures 2.9 and 5.9, drag 11
     (bench/results/magnus_mpm.txt). Slow viscous flow gives a spinning sphere C_L = 2α (Rubinow & Keller 1961): the
     ball's effective Reynolds number, set by the transfer's numerical viscosity, is a few."""
-    ball = {a: validation.magnus_held(res=24, alpha=a, dims=3) for a in (0.0, 1.0, 2.0)}
+    ball = {a: fresh(validation.magnus_held, res=24, alpha=a, dims=3) for a in (0.0, 1.0, 2.0)}
     cl = {a: r["lift_coefficient"] for a, r in ball.items()}
     report("Magnus (ball)", C_L_alpha0=cl[0.0], C_L_alpha1=cl[1.0], C_L_alpha2=cl[2.0],
            drag_coefficient=ball[1.0]["drag_coefficient"], particles=ball[1.0]["particles"])

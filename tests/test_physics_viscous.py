@@ -1,7 +1,7 @@
 """Viscous liquid: the decay of a vortex against the Navier–Stokes (Taylor–Green) solution."""
 from fluidlab_core import materials as M
 from fluidlab_core.apps import vortex
-from tests.conftest import report
+from tests.conftest import fresh, report
 
 
 def _vortex_decay_rate(material, res=24, duration=0.2, every=10):
@@ -18,12 +18,12 @@ def test_viscous_vortex_decays_at_the_navier_stokes_rate():
     (engine/model.py) the walls' slip condition acted half a cell inside the liquid and braked its wall layer,
     which the viscosity spread inward: the ratio grew to 1.7-2.4 over 50 ms and the inviscid rate was 7-15 /s
     (bench/vortex_walls.py, docs/engine.md)."""
-    baseline, k = _vortex_decay_rate(M.WATER, duration=0.01, every=1)
-    baseline_50ms, _ = _vortex_decay_rate(M.WATER, duration=0.05)
+    baseline, k = fresh(_vortex_decay_rate, M.WATER, duration=0.01, every=1)
+    baseline_50ms, _ = fresh(_vortex_decay_rate, M.WATER, duration=0.05)
     for eta in (5.0, 20.0):
         liquid = M.ViscousLiquid(f"viscous_{eta:g}", density=1000.0, viscosity_pas=eta)
-        rate, _ = _vortex_decay_rate(liquid, duration=0.01, every=1)
-        rate_50ms, _ = _vortex_decay_rate(liquid, duration=0.05 if eta < 10 else 0.03)
+        rate, _ = fresh(_vortex_decay_rate, liquid, duration=0.01, every=1)
+        rate_50ms, _ = fresh(_vortex_decay_rate, liquid, duration=0.05 if eta < 10 else 0.03)
         expected = 2 * eta / liquid.density * k ** 2
         report("viscous decay", viscosity_pas=eta, navier_stokes_per_s=expected, rate_10ms=rate,
                inviscid_10ms=baseline, excess_ratio_10ms=(rate - baseline) / expected, rate_50ms=rate_50ms,
