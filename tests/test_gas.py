@@ -24,6 +24,25 @@ def divergence(state, solid):
     return np.where(solid, 0.0, div)
 
 
+def assert_divergence_free(sim, where=None):
+    """After a step: the divergence of the face velocities, computed here from the returned state, within the solve's
+    tolerance of what it removed (‖D u‖₂ / ‖D ũ‖₂ ≤ 1.5e-6, beside the part the solve cannot remove: the net flux of
+    the solids' voxelized walls into a closed region), in the gas cells next to the solids too. Returns the relative
+    residual, the solve's report and the solid cells."""
+    rep = sim.solver.poisson.last
+    solid = sim.solid()
+    div = divergence(sim.gas_state(), solid)
+    near = np.zeros_like(solid)
+    for ax in range(3):
+        near |= np.roll(solid, 1, ax) | np.roll(solid, -1, ax)
+    near &= ~solid
+    assert near.any()
+    residual = np.linalg.norm(div) / rep["rhs_norm"]
+    assert residual <= 1.5e-6 + rep["removed"], (where, residual, rep)
+    assert np.abs(div[near]).max() <= 1.5e-6 * rep["rhs_norm"] + rep["removed_norm"], where
+    return residual, rep, solid
+
+
 def slab(nx, ny, dx, dt, walls, **gas):
     """A scene one cell thick in z (closed, so the flow is 2-D) of nx × ny cells of side dx."""
     scene = fl.Scene(lower=(0, 0, 0), upper=(nx * dx, ny * dx, dx), grid_res=max(nx, ny), dt=dt)
@@ -48,26 +67,17 @@ def room():
 def test_projection_leaves_the_flow_divergence_free_next_to_a_moving_tool(room):
     """The paddle sweeps and spins through the room while the vent blows: after every step the divergence of the
     face velocities, computed here from the returned state, is within the solver's tolerance of the divergence it
-    removed (relative residual ‖D u‖₂ / ‖D ũ‖₂ ≤ 1e-6), in the gas cells next to the tool too. The part the solve
-    cannot remove, the net flux of the tool's voxelized walls into the closed room, is reported."""
+    removed (relative residual ‖D u‖₂ / ‖D ũ‖₂ ≤ 1e-6), in the gas cells next to the tool too
+    (assert_divergence_free). The part the solve cannot remove, the net flux of the tool's voxelized walls into the
+    closed room, is reported."""
     sim, start = room
     sim.set_state(start)
     worst, removed = 0.0, 0.0
     for k in range(12):
         sim.step([0.2, 0.0, 0.0, 0.0, 0.0, 2.0])
-        rep = sim.solver.poisson.last
-        solid = sim.solid()
-        div = divergence(sim.gas_state(), solid)
-        near = np.zeros_like(solid)
-        for ax in range(3):
-            near |= np.roll(solid, 1, ax) | np.roll(solid, -1, ax)
-        near &= ~solid
-        assert near.any()
-        residual = np.linalg.norm(div) / rep["rhs_norm"]
+        residual, rep, _ = assert_divergence_free(sim, k)
         worst = max(worst, residual)
         removed = max(removed, rep["removed"])
-        assert residual <= 1.5e-6 + rep["removed"], (k, residual, rep)
-        assert np.abs(div[near]).max() <= 1.5e-6 * rep["rhs_norm"] + rep["removed_norm"]
     report("projection", worst_relative_divergence=worst, removed_flux_relative=removed)
 
 
@@ -284,17 +294,8 @@ def test_a_heater_makes_a_plume_that_a_sink_takes_beside_a_moving_mesh_tool(tmp_
     ring_smoke = 0.0
     for k in range(50):
         sim.step([*velocity, 0.0, 0.0, 0.0])
-        rep = sim.solver.poisson.last
-        solid = sim.solid()
-        div = divergence(sim.gas_state(), solid)
-        near = np.zeros_like(solid)
-        for ax in range(3):
-            near |= np.roll(solid, 1, ax) | np.roll(solid, -1, ax)
-        near &= ~solid
-        residual = np.linalg.norm(div) / rep["rhs_norm"]
+        residual, rep, solid = assert_divergence_free(sim, k)
         worst, removed = max(worst, residual), max(removed, rep["removed"])
-        assert residual <= 1.5e-6 + rep["removed"], (k, residual, rep)
-        assert np.abs(div[near]).max() <= 1.5e-6 * rep["rhs_norm"] + rep["removed_norm"]
         # the mesh tool's cells are where its mesh is now: every cell whose centre lies inside the 3 × 3 × 8 cm box
         # by more than half a cell is solid, every one outside it by more than half a cell is not
         depth = np.max(np.abs(c - (paddle0 + velocity * sim.time)) - paddle_half, axis=-1)  # > 0 outside the box
