@@ -10,7 +10,9 @@ they imply for a 120-rollout run of one thread: CMA-ES ≈ 120 forward rollouts,
 Writes bench/results/sizes_<arch>.txt (after each row, so that a run cut short keeps its rows); `--arch cuda` on a GPU
 machine. 'first s' is the first forward and gradient rollouts together (compiling, or loading the cache, and allocating). The benchmark at a size is worth running where these estimates fit the
 machine (docs/benchmark.md). `--steps N` times the first N steps of each horizon instead of all of it (the estimates
-still scale to the whole horizon), for sizes whose whole rollouts take too long to time on this machine.
+still scale to the whole horizon), for sizes whose whole rollouts take too long to time on this machine. For a
+particle task whose horizon is longer than its gradient buffer that leaves out checkpointing's second forward pass,
+so its DP estimate comes out low; a gas scene checkpoints at any length, so AirCirculation's does not.
 """
 from __future__ import annotations
 

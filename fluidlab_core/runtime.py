@@ -42,6 +42,7 @@ class RuntimeConfig:
     cpu_threads: int | None
     fast_compile: bool
     generation: int  # bumped on every reset, so stale simulators can refuse to run
+    debug: bool = False
 
 
 _config: RuntimeConfig | None = None
@@ -115,7 +116,7 @@ def init(arch: str = "cpu", precision: str = "f32", seed: int | None = None,
     ti.init(**kwargs)
     _lighter_source_positions(ti)
     _generation += 1
-    _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, fast_compile, _generation)
+    _config = RuntimeConfig(arch, backend, precision, seed, cpu_threads, fast_compile, _generation, bool(debug))
     return _config
 
 
@@ -133,7 +134,7 @@ def reset() -> RuntimeConfig:
     c = _config
     if c is None:
         return init(fresh=True)
-    return init(c.arch, c.precision, c.seed, c.cpu_threads, fast_compile=c.fast_compile, fresh=True)
+    return init(c.arch, c.precision, c.seed, c.cpu_threads, debug=c.debug, fast_compile=c.fast_compile, fresh=True)
 
 
 # Taichi keeps compiled kernels on disk (its offline cache) and by default, past 100 MB, deletes the least recently

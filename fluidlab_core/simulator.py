@@ -414,21 +414,22 @@ class Simulator:
         return self._rows(self.model.mass.to_numpy(), h)
 
     # --- pictures ---------------------------------------------------------------------------------------
-    def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None, gas="temperature",
-               gas_axis: int = 2, gas_at: float | None = None):
+    def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None, gas: bool = True,
+               field: str = "temperature", slice_axis: int = 2, slice_at: float | None = None):
         """A PNG picture of the current state (particles coloured by material, statics in grey and cut away on
         the camera's side, the domain box drawn), written to `path` if given; returns the image as an (H, W, 3)
         uint8 array. `view` is a name from fluidlab_core.render.VIEWS or (azimuth_deg, elevation_deg).
 
         In a scene with gas (Scene.add_gas beside particles) the picture has a second panel on the right, of the
-        same size: a slice of the gas field `gas` ("temperature" on the scene's fixed colour scale, "smoke",
-        "speed" or a named scalar) across axis `gas_axis` at `gas_at` m (default the gas box's middle), as
-        fluidlab_core.render.gas_slice draws it; gas=None leaves it out."""
+        same size (so the image is twice `size` wide): a slice of the gas field `field` ("temperature" on the
+        scene's fixed colour scale, "smoke", "speed" or a named scalar) across axis `slice_axis` at `slice_at` m
+        (default the gas box's middle), as GasSimulator.render and fluidlab_core.render.gas_slice draw it;
+        gas=False leaves it out."""
         from fluidlab_core.render import Layer, render, view_axes
 
         if self.gas is not None and gas:
-            picture = self.render(None, view, size, title, bodies, gas=None)
-            return _beside_gas_slice(self, picture, path, gas, gas_axis, gas_at, size)
+            picture = self.render(None, view, size, title, bodies, gas=False)
+            return _beside_gas_slice(self, picture, path, field, slice_axis, slice_at, size)
 
         if self._static_points is None:
             self._static_points = [st.shape.sample(self.scene.dx) for st in self.scene.statics]

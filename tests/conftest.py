@@ -53,7 +53,9 @@ def fresh(fn, *args, **kwargs):
     scene several times over (a sweep of a parameter that is state, not structure), keeping only numbers from each:
     after a reset the scene's fields get the same identities each time, so from the second build on its kernels
     load from Taichi's offline cache instead of compiling again (the held disc's scene: 3.5 s to 1.1 s a run).
-    Simulators built before, in this test or in a fixture, are invalid afterwards."""
+    Simulators built before, in this test or in a fixture, are invalid afterwards, and so are those that test files
+    keep in module-level caches (test_tasks.py's _SMALL, test_air_circulation.py's _TASK): safe under the README's
+    `--dist loadfile`, where a file's tests run together in one worker, not where a worker interleaves files."""
     fluidlab_core.runtime.reset()
     return fn(*args, **kwargs)
 

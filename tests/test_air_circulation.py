@@ -39,9 +39,13 @@ def test_sizes_follow_the_paper_and_keep_the_episode():
 def test_builds_steps_observes_and_resets():
     """The house holds its rooms and walls, the air conditioner turns in place, the vent cools the air (the
     hall's mean temperature falls, nothing leaves the range T_COOL … T_WARM), the observation has its documented
-    size, and reset restores the start exactly."""
+    size, and reset restores the start exactly. The conditioner touches no particles, so DP's soft contact and the
+    reference's hard contact are one simulator (Task.tool_touches_particles); an unknown contact is refused."""
     task = small()
     sim = task.simulator()
+    assert task.simulator(contact="soft") is sim
+    with pytest.raises(ValueError, match="contact must be one of"):
+        task.simulator(contact="sticky")
     task.reset(sim)
     start = sim.get_state()
     obs0 = task.observe(sim)

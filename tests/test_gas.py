@@ -317,8 +317,8 @@ def test_a_heater_makes_a_plume_that_a_sink_takes_beside_a_moving_mesh_tool(tmp_
            removed_flux_relative=removed, worst_dye_mismatch=worst_dye, smoke_beside_sink=ring_smoke,
            smoke_in_sink=float(smoke[inner].max()))
     assert rise > 0.04
-    assert uz.mean() > 0.05 and temperature[above].min() > 293.15 + 5.0
-    assert ring_smoke > 1e-4
+    assert uz.mean() > 0.2 and temperature[above].min() > 293.15 + 8.0  # measured: 0.42 m/s, at least +15.6 K
+    assert ring_smoke > 0.0025  # measured 0.005: the heater's own value reaches the sink's side
     assert smoke.min() >= -1e-9 and smoke.max() <= 0.005 + 1e-9
     assert temperature.min() >= 293.15 - 1e-3 and temperature.max() <= 333.15 + 1e-3
 
@@ -551,8 +551,8 @@ def test_gas_and_particles_move_each_other(tmp_path):
     assert abs(foam_vx / expected - 1.0) < 0.05
     assert blob_cells.sum() > 4 and inner.any()
     assert abs(float(uz[inner].mean()) - blob_vz) < 0.02
-    picture = sim.render(tmp_path / "coupled.png", size=(320, 240), gas="speed")
-    particles = sim.render(size=(320, 240), gas=None)
+    picture = sim.render(tmp_path / "coupled.png", size=(320, 240), field="speed", slice_axis=1)
+    particles = sim.render(size=(320, 240), gas=False)
     assert picture.shape == (240, 640, 3) and particles.shape == (240, 320, 3)
     assert np.array_equal(picture[:, :320], particles)
     assert np.array_equal(np.asarray(Image.open(tmp_path / "coupled.png").convert("RGB")), picture)

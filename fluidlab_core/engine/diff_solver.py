@@ -18,10 +18,11 @@ substep s (`substep_grad`) runs these kernels, built from the same functions as 
 
 What the backward reads, the forward keeps per substep (`store_*`): the grid before and after its update
 (7 reals a node), the stress τ and the gather's result (15 reals a particle, 24 with rigid bodies). The backward
-re-runs only the SVD (and with rigid bodies the stress and the projection's body sums). Intermediate
-gradients are assigned by the first kernel to write them, or zeroed by the last to read them, so no launch
-only clears. Gradients accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py)
-seeds them from the loss and hands them across segment boundaries.
+re-runs the SVD and the grid update's stages (and with rigid bodies the stress and the projection's body sums).
+Intermediate gradients are assigned by the first kernel to write them, or zeroed by the last to read them, so
+that only the grid update's stage velocities have a launch that just clears them (clear_stage_grads). Gradients
+accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py) seeds them from the loss and
+hands them across segment boundaries.
 
 Scatters (P2G forward, the gather's backward) go into one grid copy per CPU thread, summed afterwards: no
 float atomics, and sums in a fixed order, so that gradients are the same run to run. On a GPU (no copies)

@@ -82,7 +82,7 @@ class Task:
     paper_particles: tuple[int, int] = (60_000, 140_000)
     # whether the tool touches particles, so that its contact model (soft or hard) changes the physics; a task
     # without (a gas task) builds one simulator for both, not two that compile the same kernels
-    tool_contact = True
+    tool_touches_particles = True
 
     def __init__(self, size: str = "small"):
         self.size = size
@@ -121,10 +121,10 @@ class Task:
     def simulator(self, grad: bool = False, contact: str = "hard", grad_max_steps: int = 200):
         """A simulator of the task, built once per (contact, grad) and cached. A gradient simulator also runs
         the fast forward solver, so it serves forward calls of the same contact too. In a task whose tool touches
-        no particles (tool_contact False) both contacts are the same physics and share a simulator."""
+        no particles (tool_touches_particles False) both contacts are the same physics and share a simulator."""
         if contact not in CONTACTS:
             raise ValueError(f"contact must be one of {', '.join(CONTACTS)}, got {contact!r}")
-        if not self.tool_contact:
+        if not self.tool_touches_particles:
             contact = "hard"
         key = (contact, grad)
         if key not in self._sims and not grad and (contact, True) in self._sims:
