@@ -471,12 +471,9 @@ class GasSimulator:
         `path`; returns the (H, W, 3) uint8 image."""
         from fluidlab_core import render
 
-        vmin = vmax = None
-        if field == "temperature":
-            vmin, vmax = (t - 273.15 for t in self.temperature_range())
         pts = points if points is not None else getattr(self, "render_points", None)
         return render.gas_slice(self.view(), self.spec, path, field=field, axis=slice_axis, at=slice_at, size=size,
-                                title=title, vmin=vmin, vmax=vmax, points=pts, tools=self._tool_p, time=self.time)
+                                title=title, points=pts, tools=self._tool_p, time=self.time)
 
     def _slice_cells(self) -> np.ndarray:
         """Flat indices of the gas cells of the horizontal mid-plane (what viewers draw)."""

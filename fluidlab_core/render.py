@@ -418,7 +418,8 @@ def gas_slice(view, spec, path=None, field: str = "temperature", axis: int = 2, 
     box), coloured by `field` ("temperature" in °C, "smoke", "speed", or a named scalar), solids grey, the tools'
     origins `tools` (T, 3) m marked, optional `points` (P, 3) (e.g. sensors) as dots. World axes label the picture
     (REP-103). `view` is the gas's fluidlab_core.gas.GasView, `spec` its GasSpec, `time` (s) goes into the title.
-    Returns the RGB image (H, W, 3) uint8 and writes it as a PNG if `path` is given."""
+    The temperature's colour scale is the scene's fixed range (GasSpec.temperature_range) unless vmin/vmax say
+    otherwise. Returns the RGB image (H, W, 3) uint8 and writes it as a PNG if `path` is given."""
     import io
 
     import matplotlib
@@ -426,6 +427,8 @@ def gas_slice(view, spec, path=None, field: str = "temperature", axis: int = 2, 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if field == "temperature" and vmin is None and vmax is None:
+        vmin, vmax = (t - 273.15 for t in spec.temperature_range())
     shape = view.temperature.shape
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2 (x, y, z), got {axis!r}")

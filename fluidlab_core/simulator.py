@@ -314,10 +314,14 @@ class Simulator:
             raise ValueError("this scene has no gas (Scene.add_gas)")
         self.gas.write_state(self._gas_start if state is None else state)
 
-    def gas_field(self, name: str) -> np.ndarray:
+    def gas_view(self):
+        """The gas's cell fields as a loss or a picture sees them (fluidlab_core.gas.GasView)."""
         from fluidlab_core.gas import GasView
 
-        return GasView.of(self.gas_state(), self.gas.spec, self.gas.solid.to_numpy() != 0).field(name)
+        return GasView.of(self.gas_state(), self.gas.spec, self.gas.solid.to_numpy() != 0)
+
+    def gas_field(self, name: str) -> np.ndarray:
+        return self.gas_view().field(name)
 
     def _first_run(self, solver: str, what: str):
         """runtime.compiling around a solver's first run (which compiles its kernels), nothing afterwards."""
@@ -524,23 +528,14 @@ class Simulator:
 
 
 def _beside_gas_slice(sim, picture: np.ndarray, path, field: str, axis: int, at, size) -> np.ndarray:
-    """The particles' `picture` with a slice of the coupled gas's `field` beside it, of the same height (render)."""
+    """The particles' `picture` with a slice of the coupled gas's `field` beside it, both of `size` (render)."""
     from PIL import Image
 
-    from fluidlab_core.gas import GasView
     from fluidlab_core.render import _write_png_atomic, gas_slice
 
-    spec = sim.gas.spec
-    view = GasView.of(sim.gas_state(), spec, sim.gas.solid.to_numpy() != 0)
-    vmin = vmax = None
-    if field == "temperature":
-        vmin, vmax = (t - 273.15 for t in spec.temperature_range())
     position, _ = sim.state.read_tools(0)
-    panel = gas_slice(view, spec, None, field=field, axis=axis, at=at, size=size, vmin=vmin, vmax=vmax,
-                      tools=position, time=sim.time)
-    if panel.shape[0] != picture.shape[0]:
-        height = picture.shape[0]
-        panel = np.asarray(Image.fromarray(panel).resize((round(panel.shape[1] * height / panel.shape[0]), height)))
+    panel = gas_slice(sim.gas_view(), sim.gas.spec, None, field=field, axis=axis, at=at, size=size, tools=position,
+                      time=sim.time)
     both = np.concatenate([picture, panel], axis=1)
     if path is not None:
         _write_png_atomic(Image.fromarray(both), path)

@@ -34,6 +34,12 @@ CONTACTS = ("hard", "soft")
 FRAME_ID = "fr3_link0"
 
 
+def _check_contact(contact: str) -> None:
+    """Refuse a tool contact other than CONTACTS, naming it."""
+    if contact not in CONTACTS:
+        raise ValueError(f"contact must be one of {', '.join(CONTACTS)}, got {contact!r}")
+
+
 @dataclass(frozen=True)
 class SizeConfig:
     """The resolution a task runs at. `substeps` is the least that passes the stability check (never fewer than
@@ -108,8 +114,7 @@ class Task:
         """The task's Scene (not yet built) with the given tool contact."""
         from fluidlab_core.scene import Scene
 
-        if contact not in CONTACTS:
-            raise ValueError(f"contact must be one of {', '.join(CONTACTS)}, got {contact!r}")
+        _check_contact(contact)
         lower, upper = self._domain()
         cfg = self.config
         scene = Scene(lower=lower, upper=upper, grid_res=cfg.grid_res, dt=cfg.dt, substeps=1, seed=0)
@@ -122,8 +127,7 @@ class Task:
         """A simulator of the task, built once per (contact, grad) and cached. A gradient simulator also runs
         the fast forward solver, so it serves forward calls of the same contact too. In a task whose tool touches
         no particles (tool_touches_particles False) both contacts are the same physics and share a simulator."""
-        if contact not in CONTACTS:
-            raise ValueError(f"contact must be one of {', '.join(CONTACTS)}, got {contact!r}")
+        _check_contact(contact)
         if not self.tool_touches_particles:
             contact = "hard"
         key = (contact, grad)
