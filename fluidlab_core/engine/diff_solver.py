@@ -10,19 +10,17 @@ substep s (`substep_grad`) runs these kernels, built from the same functions as 
     stress: (F_new, τ) = model(...)         autodiff, one kernel per model (all models in one reverse kernel
                                            took 11 minutes to compile)
     P2G                                    backward by hand (transfer.p2g_backward)
-    grid update and the tools' advance     autodiff, a kernel a stage: the free velocity, each static, each tool,
-                                           the walls, the tools' advance (grid_update_grad)
+    grid update and the tools' advance     autodiff (grid_update)
     G2P gather and advection               backward by hand (transfer.gather_backward)
     projection out of statics and walls    autodiff (g2p_project)
     rigid projection                       autodiff of rigid.py's kernels, the polar SVD by hand
 
 What the backward reads, the forward keeps per substep (`store_*`): the grid before and after its update
 (7 reals a node), the stress τ and the gather's result (15 reals a particle, 24 with rigid bodies). The backward
-re-runs the SVD and the grid update's stages (and with rigid bodies the stress and the projection's body sums).
-Intermediate gradients are assigned by the first kernel to write them, or zeroed by the last to read them, so
-that only the grid update's stage velocities have a launch that just clears them (clear_stage_grads). Gradients
-accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py) seeds them from the loss and
-hands them across segment boundaries.
+re-runs only the SVD (and with rigid bodies the stress and the projection's body sums). Intermediate
+gradients are assigned by the first kernel to write them, or zeroed by the last to read them, so no launch
+only clears. Gradients accumulate in the `.grad` of the slot fields; the checkpointing driver (checkpoint.py)
+seeds them from the loss and hands them across segment boundaries.
 
 Scatters (P2G forward, the gather's backward) go into one grid copy per CPU thread, summed afterwards: no
 float atomics, and sums in a fixed order, so that gradients are the same run to run. On a GPU (no copies)
@@ -106,14 +104,6 @@ class DiffSolver(Solver):
         self.store_tau = ti.Matrix.field(3, 3, real, shape=(n_sub, n))  # the stress, for P2G's backward
         if self.rigid is not None:  # otherwise C_pre is C of slot s + 1
             self.store_C_pre = ti.Matrix.field(3, 3, real, shape=(n_sub, n))
-        # the grid update's backward by stages (grid_update_grad): per velocity field and node, whether it has
-        # mass (the update leaves it at rest otherwise) and its velocity before the first boundary condition and
-        # after each static and each tool; recomputed from the restored grid before each substep's backward
-        self.n_velocity_fields = 2 if self.two_fields else 1
-        stage_shape = (self.n_velocity_fields,) + tuple(model.grid_shape)
-        self.stage_active = ti.field(ti.i32, shape=stage_shape)
-        self.stage_v = [ti.Vector.field(3, real, shape=stage_shape, needs_grad=True)
-                        for _ in range(len(model.colliders) + model.n_tools + 1)]
         self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
         # where the gather's backward scatters ∂L/∂v_i: the per-thread copies (summed afterwards) or the grid
         self._gather_target = self.copies_mv if self.private else self.grid_v.grad
@@ -174,7 +164,7 @@ class DiffSolver(Solver):
         if self.rigid is not None:
             self.rigid.backward(self.state, s + 1)
         self.g2p_grad(s)
-        self.grid_update_grad(s)
+        self.grid_update.grad(s)
         self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.model.constitutive))):
             self.stress.grad(s, k)
@@ -276,100 +266,27 @@ class DiffSolver(Solver):
             if ti.static(not self.has_rigid):
                 self.F_model.grad[p] = self.state.F.grad[s + 1, p]
 
-    # --- the grid update's backward, a kernel a stage ---------------------------------------------------------
-    def grid_update_grad(self, s: int):
-        """Gradients through substep s's grid update (grid.node_velocity, for each velocity field) and the tools'
-        advance to slot s + 1, from ∂L/∂v of the nodes (which g2p_gather_grad put into grid_v.grad with the grid
-        it restored) to the grid's mass and momentum and the tools' slot s. The update runs here as one kernel a
-        stage, in node_velocity's order (the free velocity, each static, each tool, the walls), because Taichi
-        compiles small reverse-mode kernels faster than one large one: GatheringEasy (small, a tank and a soft
-        tool) compiled the whole update's reverse kernel in 13.6 s and compiles the stages' in 9.7 s, 6.5 of them
-        the tools' advance, its first gradient rollout 31.7 s → 28.3 s from an empty cache. The stages'
-        velocities are recomputed first; their gradients are zeroed, then each stage's reverse kernel runs, last
-        stage first."""
-        n_statics, n_tools = len(self.model.colliders), self.model.n_tools
-        self.stage_free(s)
-        for k in range(n_statics):
-            self.stage_static(k)
-        for k in range(n_tools):
-            self.stage_tool(s, k)
-        self.clear_stage_grads()
-        self.advance_tools.grad(s)
-        self.stage_walls.grad()
-        for k in reversed(range(n_tools)):
-            self.stage_tool.grad(s, k)
-        for k in reversed(range(n_statics)):
-            self.stage_static.grad(k)
-        self.stage_free.grad(s)
-
     @ti.kernel
-    def stage_free(self, s: ti.i32):
-        """stage_v[0]: each field's free velocity at the nodes with mass (grid.free_velocity; with two fields, of
-        the mass and momentum grid.field_mass gives it), 0 elsewhere; stage_active marks the nodes with mass."""
-        for f, i, j, k in ti.ndrange(self.n_velocity_fields, *self.model.grid_shape):
-            I = ti.Vector([i, j, k])
-            m, mv = self.grid_m[I], self.grid_mv[I]
-            if ti.static(self.two_fields):
+    def grid_update(self, s: ti.i32):
+        """Node velocities at the slot-s tool poses, then the tools' advance to slot s + 1 (for autodiff)."""
+        if ti.static(self.two_fields):
+            # both fields in one loop over (field, node): one inlined copy of the boundary conditions, whose
+            # gradient dominates this kernel's compile time
+            for f, i, j, k in ti.ndrange(2, *self.model.grid_shape):
+                I = ti.Vector([i, j, k])
                 c = grid.in_contact(self.model, I, self.grid_m[I], self.grid_m_f[I], self.grid_vol[I])
-                m, mv = grid.field_mass(f, c, self.grid_m[I], self.grid_mv[I], self.grid_m_f[I], self.grid_mv_f[I])
-            v = ti.Vector.zero(float, 3)
-            active = 0
-            if m > self.model.mass_floor:
-                v = grid.free_velocity(self.model, m, mv)
-                active = 1
-            self.stage_v[0][f, i, j, k] = v
-            self.stage_active[f, i, j, k] = active
-
-    @ti.kernel
-    def stage_static(self, k: ti.template()):
-        """stage_v[k + 1]: after static k's boundary condition (statics.Collider.grid) at the nodes with mass."""
-        for f, i, j, l in ti.ndrange(self.n_velocity_fields, *self.model.grid_shape):
-            v = self.stage_v[k][f, i, j, l]
-            if self.stage_active[f, i, j, l] != 0:
-                v = self.model.colliders[k].grid(grid.node_position(self.model, ti.Vector([i, j, l])), v)
-            self.stage_v[k + 1][f, i, j, l] = v
-
-    @ti.kernel
-    def stage_tool(self, s: ti.i32, k: ti.template()):
-        """The stage after the statics' for tool k: its contact law at its slot-s pose (grid.tool_contact)."""
-        a = ti.static(len(self.model.colliders) + k)
-        for f, i, j, l in ti.ndrange(self.n_velocity_fields, *self.model.grid_shape):
-            v = self.stage_v[a][f, i, j, l]
-            if self.stage_active[f, i, j, l] != 0:
-                v = grid.tool_contact(self.model, k, grid.node_position(self.model, ti.Vector([i, j, l])), v,
-                                      self.state, s)
-            self.stage_v[a + 1][f, i, j, l] = v
-
-    @ti.kernel
-    def stage_walls(self):
-        """The last stage: the domain walls (grid.walls), into grid_v (and grid_v_f, the fluids' field)."""
-        last = ti.static(len(self.model.colliders) + self.model.n_tools)
-        for f, i, j, l in ti.ndrange(self.n_velocity_fields, *self.model.grid_shape):
-            I = ti.Vector([i, j, l])
-            v = self.stage_v[last][f, i, j, l]
-            if self.stage_active[f, i, j, l] != 0:
-                v = grid.walls(self.model, grid.node_position(self.model, I), v)
-            if ti.static(self.two_fields):
+                v = grid.field_velocity(self.model, I, f, c, self.grid_m[I], self.grid_mv[I], self.grid_m_f[I],
+                                        self.grid_mv_f[I], self.state, s)
                 if f == 0:
                     self.grid_v[I] = v
                 else:
                     self.grid_v_f[I] = v
-            else:
-                self.grid_v[I] = v
-
-    @ti.kernel
-    def advance_tools(self, s: ti.i32):
-        """The tools' poses from slot s to slot s + 1 (for autodiff)."""
+        else:
+            for I in ti.grouped(self.grid_m):
+                self.grid_v[I] = grid.node_velocity(self.model, I, self.grid_m[I], self.grid_mv[I], self.state, s)
         ti.loop_config(serialize=True)
         for k in range(self.model.n_tools):
             self._advance_tool(self.state, s, s + 1, k)
-
-    @ti.kernel
-    def clear_stage_grads(self):
-        """Zero the gradients of the stages' velocities, into which their reverse kernels add."""
-        for f, i, j, k in ti.ndrange(self.n_velocity_fields, *self.model.grid_shape):
-            for a in ti.static(range(len(self.stage_v))):
-                self.stage_v[a].grad[f, i, j, k] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def g2p_project(self, s: ti.i32):
@@ -402,7 +319,7 @@ class DiffSolver(Solver):
     @ti.kernel
     def g2p_gather_grad(self, s: ti.i32):
         """Backward of the gather and advection (transfer.gather_backward) with the stored node velocities. The
-        kernel's grid loop also puts the substep's grid back for the grid update's backward (grid_m, grid_mv from
+        kernel's grid loop also puts the substep's grid back for grid_update's backward (grid_m, grid_mv from
         the stores, their gradients zero): no separate restore launch."""
         if ti.static(self.private):
             ti.loop_config(block_dim=1)

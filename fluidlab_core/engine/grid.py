@@ -51,38 +51,18 @@ def stencil(model: ti.template(), xp):
 
 @ti.func
 def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
-    """Velocity of node I from its mass and momentum: gravity, statics, tools at their slot-s pose, walls. The
-    stages, in this order, are also run one kernel each by the differentiable solver's backward
-    (DiffSolver.grid_update_grad), whose reverse-mode kernels compile faster apart."""
+    """Velocity of node I from its mass and momentum: gravity, statics, tools at their slot-s pose, walls."""
     vn = ti.Vector.zero(float, 3)
     if m > model.mass_floor:
-        vn = free_velocity(model, m, mv)
-        xn = node_position(model, I)
+        vn = mv / m + model.dt * ti.Vector(model.gravity)
+        xn = ti.Vector(model.origin) + I * model.dx
         for k in ti.static(range(len(model.colliders))):
             vn = model.colliders[k].grid(xn, vn)
         for k in ti.static(range(model.n_tools)):
-            vn = tool_contact(model, k, xn, vn, state, s)
+            vn = model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
+                                           state.tool_v_real[k, s], state.tool_w_real[k, s])
         vn = walls(model, xn, vn)
     return vn
-
-
-@ti.func
-def node_position(model: ti.template(), I):
-    """World position (m) of grid node I."""
-    return ti.Vector(model.origin) + I * model.dx
-
-
-@ti.func
-def free_velocity(model: ti.template(), m, mv):
-    """A node's velocity before its boundary conditions: momentum over mass, plus gravity over the substep."""
-    return mv / m + model.dt * ti.Vector(model.gravity)
-
-
-@ti.func
-def tool_contact(model: ti.template(), k: ti.template(), xn, vn, state: ti.template(), s):
-    """Node velocity vn at xn after tool k's contact law, the tool at its slot-s pose and twist."""
-    return model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
-                                     state.tool_v_real[k, s], state.tool_w_real[k, s])
 
 
 @ti.func
@@ -92,7 +72,7 @@ def solid_share_of(model: ti.template(), I):
     Walls and statics are not void: a liquid and a body that meet beside one fill such a node only up to this
     share, and the contact test counts it as filled (without it, a body against a wall, or in a slab between
     two, shared no velocity with the liquid at the nodes next to the wall and passed through it there)."""
-    xn = node_position(model, I)
+    xn = ti.Vector(model.origin) + I * model.dx
     inside = 1.0
     for d in ti.static(range(3)):
         beyond = statics.bspline_cdf((model.lower[d] - xn[d]) * model.inv_dx) + \
@@ -127,19 +107,11 @@ def field_velocity(model: ti.template(), I, fluid, contact, m_s, mv_s, m_f, mv_f
     """Velocity of node I in the solids' (fluid = 0) or the fluids' (fluid = 1) field: from that field's mass
     and momentum, or at a contact node (contact = 1.0, from in_contact) from both (node_velocity). Arithmetic
     selection, exact for 0/1 weights, rather than locals written in branches (Taichi's reverse mode)."""
-    m, mv = field_mass(fluid, contact, m_s, mv_s, m_f, mv_f)
-    return node_velocity(model, I, m, mv, state, s)
-
-
-@ti.func
-def field_mass(fluid, contact, m_s, mv_s, m_f, mv_f):
-    """The mass and momentum that the solids' (fluid = 0) or the fluids' (fluid = 1) field moves with at a node:
-    its own, or at a contact node (contact = 1.0) both fields' together (field_velocity)."""
     a = ti.cast(fluid, float)
     c = contact
     m = (1.0 - c) * ((1.0 - a) * m_s + a * m_f) + c * (m_s + m_f)
     mv = (1.0 - c) * ((1.0 - a) * mv_s + a * mv_f) + c * (mv_s + mv_f)
-    return m, mv
+    return node_velocity(model, I, m, mv, state, s)
 
 
 @ti.func
