@@ -40,8 +40,10 @@ def test_builds_steps_observes_and_resets():
     """The house holds its rooms and walls, the air conditioner turns in place, the vent cools the air (the
     hall's mean temperature falls, nothing leaves the range T_COOL … T_WARM), the observation has its documented
     size, and reset restores the start exactly. The conditioner touches no particles, so DP's soft contact and the
-    reference's hard contact are one simulator (Task.tool_touches_particles); an unknown contact is refused."""
+    reference's hard contact are one simulator (Task.tool_touches_particles, found from the scene: it holds no
+    particles); an unknown contact is refused."""
     task = small()
+    assert type(task).touches_particles is None and not task.tool_touches_particles
     sim = task.simulator()
     assert task.simulator(contact="soft") is sim
     with pytest.raises(ValueError, match="contact must be one of"):
@@ -177,6 +179,7 @@ def test_dp_over_windows_differentiates_each_window_from_where_the_actions_lead(
     assert meta["steps_used"] == 780 and meta["iterations"] == 2 and len(out.loss_history) == 2
     assert [p.steps for p in seen] == [360, 540] and [p.region for p in seen] == [60, 60]
     assert meta["settings"]["gradient_window"] == 60 and meta["settings"]["windows"] == 4
+    assert meta["settings"]["soft_contact"] is False  # the record says what ran: no particles, no soft contact
     assert meta["final_loss"] == pytest.approx(min(out.loss_history), rel=1e-6)  # no contact: one physics
 
 

@@ -170,7 +170,7 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     if not np.isfinite(best[0]):  # never reached the whole horizon: keep the last parameters
         best = (np.nan, theta)
     return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,
-                  {"soft_contact": opts.soft_contact, "expanding_region": expanding,
+                  {"soft_contact": opts.soft_contact and task.tool_touches_particles, "expanding_region": expanding,
                    "attraction": attraction is not None, "gradient_sharing": sharing is not None,
                    "parametrisation": par.name})
 
@@ -252,5 +252,5 @@ def _run_windows(task, budget, seed, callback, opts, method, max_iterations) -> 
     if steps_used + horizon <= budget and not np.array_equal(judged, theta):
         whole_horizon()  # the last parameters, unless they were just judged
     return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,
-                  {"soft_contact": opts.soft_contact, "gradient_window": int(opts.gradient_window),
+                  {"soft_contact": opts.soft_contact and task.tool_touches_particles, "gradient_window": int(opts.gradient_window),
                    "windows": len(spans), "parametrisation": par.name})

@@ -97,7 +97,6 @@ class AirCirculation(Task):
     camera = "top"
     action_knots = 10  # an arm turns it: a smooth yaw rate
     start_noise = 0.1
-    tool_touches_particles = False  # the conditioner touches only air: DP's soft contact and the reference are one physics
     learning_rate = 0.03  # DP's Adam step: 0.045 rad/s per knot (0.15, the default, overshot: the loss rose 7.18 → 7.61)
     reward_c1 = 1.0
     reward_c2 = 1.0 / 8.0

@@ -87,8 +87,9 @@ class Task:
     # particles at paper size: the paper's "about 100k"; a scene filled by an emitter, or a glass, holds fewer
     paper_particles: tuple[int, int] = (60_000, 140_000)
     # whether the tool touches particles, so that its contact model (soft or hard) changes the physics; a task
-    # without (a gas task) builds one simulator for both, not two that compile the same kernels
-    tool_touches_particles = True
+    # without (a gas task) builds one simulator for both, not two that compile the same kernels. None: from the
+    # scene (touching where it holds any particle body or emitter); a subclass may set True or False
+    touches_particles: bool | None = None
 
     def __init__(self, size: str = "small"):
         self.size = size
@@ -101,6 +102,17 @@ class Task:
         self._initial_state: dict = {}
         self._observe_index: dict | None = None
         self._handles: dict | None = None
+        self._touches: bool | None = None
+
+    @property
+    def tool_touches_particles(self) -> bool:
+        """Whether the tool's contact model (soft or hard) changes the physics: the class's
+        `touches_particles` if set, else whether the task's scene holds any particles (bodies or emitters)."""
+        if self.touches_particles is not None:
+            return bool(self.touches_particles)
+        if self._touches is None:
+            self._touches = bool(self.scene("hard").bodies)
+        return self._touches
 
     # --- scene ------------------------------------------------------------------------------------------
     def _populate(self, scene, contact: str):
