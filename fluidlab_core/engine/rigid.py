@@ -39,7 +39,7 @@ docs/experiments/): a dropped 500 kg/m3 cube floats at 0.50 +- 0.005 over 4 s at
 and an 800 kg/m3 cube 0.86-0.87 (the read-out is low near the face's edges); at 24 cells the 500 kg/m3 cube sits at a
 share of 0.545, tilted. The most promising route so far, not yet converged. The same force as a volume integral over a band of liquid
 around the body, with the liquid's acceleration (the patch's band mode, 2026-12-01): a dropped 500 kg/m3 cube holds
-0.47 of its volume under for 5 s without creeping, but a deep start stays deep and an 800 kg/m3 cube sinks through
+0.47 of its volume under for 5 s without creeping at 16 cells (0.60 at 24), but a deep start stays deep and an 800 kg/m3 cube sinks through
 its depth at balanced force: what is left is the liquid's pressure around the body, which its J's history sets.
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
