@@ -262,6 +262,12 @@ def test_merge_adds_another_folders_runs_once_and_refuses_other_physics(tmp_path
     assert (main / sac["trajectory"]).with_name(Path(sac["trajectory"]).stem + ".report.json").is_file()
     assert benchmark.merge(side, main, log=lambda *_: None) == []  # again: nothing new
 
+    # another machine's float32 rounding moves the still tool's loss by about 1e-6 (Pouring's: 1.2e-6): one physics
+    cpu2 = tmp_path / "cpu2"
+    _fake_run(cpu2, "GatheringEasy", "still", 0, 5e-3 * (1 + 2e-6))
+    ppo = _fake_run(cpu2, "GatheringEasy", "ppo", 0, 4.9e-3)
+    assert [r["key"] for r in benchmark.merge(cpu2, main, log=lambda *_: None)] == [ppo["key"]]
+
     _fake_run(other, "GatheringEasy", "still", 0, 5.1e-3)
     _fake_run(other, "GatheringEasy", "pods", 0, 4.8e-3)
     before = (main / "runs.jsonl").read_text()
