@@ -294,10 +294,14 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
     bench/remeasure_shipped.py (which keeps the optimiser's as `optimised_loss` and says why in `remeasured`:
     the tasks optimised before the nodes on the walls; Mixing and LatteArtPour re-shipped from runs made before
     later engine changes; the Gathering tasks and Transporting, re-optimised on today's engine, carry their
-    optimiser's). Pouring within 2 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
+    optimiser's). Pouring within 5 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
     in another order move its loss (measured: 2.5843e-2 with one CPU thread, as the bench optimised it, 2.5759e-2
     with two, 0.33 %; each repeats exactly; on an AMD EPYC with AVX-512, 2026-11-27, the recorded 2.1361e-2
-    replays as 2.1623e-2, 1.23 %, while every other task replays to within 2e-5 there). Pouring replays in a
+    replays as 2.1623e-2, 1.23 %, while every other task replays to within 2e-5 there). The bound was 2 % until
+    an Intel Xeon with AVX-512 (2026-12-01) replayed it as 2.1793e-2 (+2.02 %), and on that machine, with
+    Taichi's fast math off and/or one thread, as 2.1129e-2, 2.1584e-2 and 2.2384e-2 (−1.1 % to +4.8 %): the
+    spread of rounding orders on one CPU, not a change of physics (the commit before that day's changes replays
+    2.1793e-2 too); the still tool's 5.03e-2 is 2.4 times the recorded loss. Pouring replays in a
     process of its own compiled as users run (FLUIDLAB_FAST_COMPILE=0, `fluidlab evaluate`): the suite's fast
     compilation (conftest.py) rounds differently again, and moved it 4.2 % (2.2257e-2), while every other task
     stayed within 0.1 %."""
@@ -326,5 +330,5 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
         else:
             loss = task.evaluate(actions, tool_position=position, rewards=False)["loss"]
         zero = task.evaluate(np.zeros_like(actions), rewards=False)["loss"]
-        assert loss == pytest.approx(traj.metadata["final_loss"], rel=2e-2 if name == "Pouring" else 1e-3), name
+        assert loss == pytest.approx(traj.metadata["final_loss"], rel=5e-2 if name == "Pouring" else 1e-3), name
         assert loss < zero  # the optimised trajectory beats leaving the tool still
