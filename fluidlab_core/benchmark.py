@@ -201,8 +201,9 @@ def merge(src: Path, out: Path, log=print) -> list[dict]:
     OUT/runs.jsonl lacks is appended to it, after its trajectory and report are copied to the same relative path
     under OUT. Runs done in separate folders (beside other work, on other machines) join one table this way.
     Refuses, before writing anything, a SRC whose still tool reads another loss than OUT's (beyond STILL_RTOL, which
-    another CPU's rounding stays within) for the same task, size and budget (the runs were made on other physics: `--reevaluate` puts them on one engine, and then the
-    re-evaluated still losses are compared), and a record whose trajectory file is missing. Returns the records
+    another CPU's rounding stays within) for the same task, size and budget (the runs were made on other physics:
+    `--reevaluate` puts them on one engine, and then the re-evaluated still losses are compared),
+    and a record whose trajectory file is missing. Returns the records
     added."""
     from fluidlab_core.files import write_atomic
     from fluidlab_core.trajectory_store import report_path

@@ -252,5 +252,6 @@ def _run_windows(task, budget, seed, callback, opts, method, max_iterations) -> 
     if steps_used + horizon <= budget and not np.array_equal(judged, theta):
         whole_horizon()  # the last parameters, unless they were just judged
     return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,
-                  {"soft_contact": opts.soft_contact and task.tool_touches_particles, "gradient_window": int(opts.gradient_window),
+                  {"soft_contact": opts.soft_contact and task.tool_touches_particles,
+                   "gradient_window": int(opts.gradient_window),
                    "windows": len(spans), "parametrisation": par.name})

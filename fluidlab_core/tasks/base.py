@@ -110,7 +110,7 @@ class Task:
         `touches_particles` if set, else whether the task's scene holds any particles (bodies or emitters)."""
         if self.touches_particles is not None:
             return bool(self.touches_particles)
-        if self._touches is None:
+        if self._touches is None:  # found by the first simulator(); without one, from a scene built for it
             self._touches = bool(self.scene("hard").bodies)
         return self._touches
 
@@ -140,13 +140,17 @@ class Task:
         the fast forward solver, so it serves forward calls of the same contact too. In a task whose tool touches
         no particles (tool_touches_particles False) both contacts are the same physics and share a simulator."""
         _check_contact(contact)
-        if not self.tool_touches_particles:
-            contact = "hard"
+        scene = None
+        if self.touches_particles is None and self._touches is None:  # the first build tells (one scene, not two)
+            scene = self.scene(contact)
+            self._touches = bool(scene.bodies)
+        if not self.tool_touches_particles and contact != "hard":
+            contact, scene = "hard", None
         key = (contact, grad)
         if key not in self._sims and not grad and (contact, True) in self._sims:
             return self._sims[(contact, True)]
         if key not in self._sims:
-            scene = self.scene(contact)
+            scene = scene or self.scene(contact)
             sim = scene.build(requires_grad=grad, grad_max_steps=grad_max_steps)
             sim.check_finite_every = 10
             self._sims[key] = sim
