@@ -39,7 +39,12 @@ machine) to OUT with their trajectories, skipping those OUT has; it refuses a fo
 loss (other physics). Appends to runs.jsonl hold a lock, so a merge and a running sweep never interleave a line.
 
 Resuming. Each finished run is appended to OUT/runs.jsonl as soon as it returns. A sweep started again with the
-same OUT skips every run already there, so an interrupted sweep never repeats or loses one. Then come the
+same OUT skips every run already there, so an interrupted sweep never repeats or loses one. A run of a method in
+optim.RESUMABLE (DP, DP-H, DP's ablations) also saves its state every `--snapshot-minutes` (default 5) to
+OUT/partial/<run>.npz (the optimiser's state and the run's curve and times so far, written atomically); a sweep
+started again continues such a run from its last snapshot instead of from the start, and the record says so
+(`resumed`: the steps at each restart; its wall time is the sum of its sessions'). The snapshot is deleted once the
+run's record is in runs.jsonl. Other methods start an interrupted run again. Then come the
 table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
 (OUT/curves_<task>.png), an overview of every task (OUT/overview.png) and the trajectories (OUT/trajectories/).
 """
@@ -78,6 +83,48 @@ def _record(spec: dict, task=None, **fields) -> dict:
     return {**rec, **fields}
 
 
+PARTIAL_FORMAT = "fluidlab-benchmark-partial"
+
+
+def partial_path(spec: dict) -> Path:
+    """Where a resumable run keeps its latest snapshot."""
+    return Path(spec["out"]) / "partial" / f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}.npz"
+
+
+def save_partial(path: Path, spec: dict, opt_state: dict, bench: dict):
+    """Write a run's snapshot atomically: the optimiser's state (its arrays as arrays, the rest as JSON) and the
+    benchmark's own bookkeeping (curve, wall and evaluation seconds, restarts)."""
+    import io
+
+    from fluidlab_core.files import write_atomic
+
+    arrays = {k: v for k, v in opt_state.items() if isinstance(v, np.ndarray)}
+    meta = {"format": PARTIAL_FORMAT, "key": run_key(spec),
+            "optimiser": {k: v for k, v in opt_state.items() if k not in arrays}, "bench": bench}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **{f"a_{k}": v for k, v in arrays.items()})
+    write_atomic(path, buf.getvalue())
+
+
+def load_partial(path: Path, spec: dict) -> tuple[dict, dict]:
+    """(optimiser state, bookkeeping) of a snapshot; refuses one of another run, naming both."""
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        arrays = {k[2:]: z[k] for k in z.files if k.startswith("a_")}
+    if meta.get("format") != PARTIAL_FORMAT:
+        raise ValueError(f"{path} is not a benchmark snapshot (format {meta.get('format')!r})")
+    if meta.get("key") != run_key(spec):
+        raise ValueError(f"{path} holds run {meta.get('key')!r}, not {run_key(spec)!r}: delete it or use another --out")
+    return {**meta["optimiser"], **arrays}, meta["bench"]
+
+
+def finish(out: Path, rec: dict):
+    """Append a run's record to OUT/runs.jsonl; a finished run's snapshot is then no longer needed."""
+    _append(Path(out) / "runs.jsonl", rec)
+    if "final_loss" in rec:
+        partial_path({**rec, "out": str(Path(out).resolve())}).unlink(missing_ok=True)
+
+
 def run_job(spec: dict) -> dict:
     """One run (in a worker process): optimise, evaluate the best so far at the checkpoints, save the trajectory.
     Returns the run's record; an error becomes a record with 'error' (the sweep goes on)."""
@@ -103,8 +150,21 @@ def run_job(spec: dict) -> dict:
                            **{"return": float(out["return"])})
         marks = [int(round(budget * (i + 1) / spec["checkpoints"])) for i in range(spec["checkpoints"])]
         ref = task.simulator(grad=False, contact="hard")
-        curve, spent = [], {"eval": 0.0}
-        t0 = time.perf_counter()
+        curve, spent, resumed = [], {"eval": 0.0}, []
+        base_method = "dp" if spec["method"] in ABLATIONS else spec["method"]
+        snap_path = partial_path(spec) if base_method in optim.RESUMABLE else None
+        snap_every = 60.0 * float(spec.get("snapshot_minutes", 5.0))
+        resume, before = None, 0.0
+        if snap_path is not None and snap_path.exists():
+            resume, bench = load_partial(snap_path, spec)
+            curve, spent["eval"], before = bench["curve"], float(bench["eval"]), float(bench["wall"])
+            resumed = bench.get("resumed", []) + [int(resume["steps_used"])]
+            marks = [m for m in marks if m > int(resume["steps_used"])]
+            print(f"  {spec['task']} {spec['method']} seed {spec['seed']}: resuming from its snapshot at "
+                  f"{100 * int(resume['steps_used']) / budget:.0f} % of the budget ({snap_path})",
+                  file=sys.stderr, flush=True)
+        t0 = time.perf_counter() - before - spent["eval"]  # wall below = this session's and the earlier ones'
+        last_snap = [time.perf_counter()]
 
         def evaluate(theta, par):
             e0 = time.perf_counter()
@@ -123,12 +183,18 @@ def run_job(spec: dict) -> dict:
                 print(f"  {spec['task']} {spec['method']} seed {spec['seed']}: {100 * p.steps / budget:.0f} % of the "
                       f"budget, best iterate's loss {curve[-1][1]:.4e} on the reference physics, {wall / 60:.1f} min",
                       file=sys.stderr, flush=True)
+            if snap_path is not None and p.state is not None and time.perf_counter() - last_snap[0] >= snap_every:
+                wall = time.perf_counter() - t0 - spent["eval"]
+                save_partial(snap_path, spec, p.state(), {"curve": curve, "eval": spent["eval"], "wall": wall,
+                                                          "resumed": resumed})
+                last_snap[0] = time.perf_counter()
             return False
 
         method, without = (("dp", ABLATIONS[spec["method"]]) if spec["method"] in ABLATIONS
                            else (spec["method"], ()))
         traj = optim.optimise(task, method, budget, seed=int(spec["seed"]), callback=callback, without=without,
-                              min_generations=spec.get("min_generations") if method == "cma-es" else None)
+                              min_generations=spec.get("min_generations") if method == "cma-es" else None,
+                              resume=resume)
         wall = time.perf_counter() - t0 - spent["eval"]
         final = float(traj.metadata["final_loss"])
         if not curve or curve[-1][0] < traj.metadata["steps_used"]:
@@ -140,7 +206,7 @@ def run_job(spec: dict) -> dict:
                          iterations=int(traj.metadata["iterations"]), settings=traj.metadata.get("settings", {}),
                          curve=curve, wall=round(wall, 2), eval_seconds=round(spent["eval"], 2),
                          trajectory=str(path.relative_to(Path(spec["out"]))),
-                         **{"return": float(traj.metadata["return"])})
+                         **{"return": float(traj.metadata["return"])}, **({"resumed": resumed} if resumed else {}))
         # beside the trajectory, as `fluidlab optimise` writes it (bench/ship_best.py copies both)
         write_atomic(report_path(path), json.dumps(record, indent=1).encode())
         return record
@@ -500,7 +566,7 @@ def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
 def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int, size: str, out: Path,
           jobs: int | None = None, threads: int | None = None, ray_address: str | None = None,
           use_ray: bool | None = None, min_generations: int = 30, checkpoints: int = 10, arch: str = "cpu",
-          log=print, baseline: bool = True) -> list[dict]:
+          log=print, baseline: bool = True, snapshot_minutes: float = 5.0) -> list[dict]:
     """Run what is not yet in OUT/runs.jsonl, append each run as it finishes, then write the table and plots.
     Returns every record of the sweep (finished before or now)."""
     from fluidlab_core import optim, tasks
@@ -545,7 +611,8 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
             for s in seeds:
                 specs.append({"task": name, "method": m, "seed": int(s), "size": size, "budget": budget,
                               "arch": arch, "threads": threads, "min_generations": int(min_generations),
-                              "checkpoints": int(checkpoints), "out": str(out.resolve())})
+                              "checkpoints": int(checkpoints), "out": str(out.resolve()),
+                              "snapshot_minutes": float(snapshot_minutes)})
     for r in refused:
         log(f"refused: {r['task']} {r['method']}: {r['why']}")
     previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
@@ -563,7 +630,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
             handles = [submit(s) for s in todo]
             for i in range(len(todo)):
                 rec, handles = wait(handles)
-                _append(runs_path, rec)
+                finish(out, rec)
                 records.append(rec)
                 status = (f"final loss {rec['final_loss']:.4e}, return {rec['return']:.3f}" if "final_loss" in rec
                           else f"FAILED: {rec['error']}")
@@ -601,6 +668,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-ray", action="store_true", help="a process pool even when Ray is installed")
     ap.add_argument("--min-generations", type=int, default=30, help="CMA-ES generations a budget must hold")
     ap.add_argument("--checkpoints", type=int, default=10, help="reference evaluations along each run's budget")
+    ap.add_argument("--snapshot-minutes", type=float, default=5.0,
+                    help="a resumable run (dp, dp-h, ablations) saves its state to OUT/partial/ this often, and a "
+                    "sweep started again continues it from there (default 5)")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--reevaluate", action="store_true",
                     help="replay every finished run's trajectory on this engine (OUT/reevaluated.jsonl, resumable; the "
@@ -711,7 +781,7 @@ def _dispatch(args, default_methods):
         return
     sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
           args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
-          args.checkpoints, args.arch)
+          args.checkpoints, args.arch, snapshot_minutes=args.snapshot_minutes)
 
 
 if __name__ == "__main__":

@@ -63,6 +63,98 @@ def test_bad_requests_are_refused():
         optim.optimise(task, "cma-es", budget=1000, without=["attraction"])
     with pytest.raises(ValueError, match="'dp-window' needs a loss that is a mean over the horizon's steps; Mixing"):
         optim.optimise(task, "dp-window", budget=1000)
+    with pytest.raises(ValueError, match="cma-es cannot resume a saved state .resumable: dp, dp-h."):
+        optim.optimise(task, "cma-es", budget=1000, resume={})
+
+
+def test_dp_resumed_from_its_saved_state_continues_the_same_run(gathering, tmp_path):
+    """A DP run (all its techniques on) resumed from the `progress.state()` of its fourth iteration, through the
+    benchmark's snapshot file, makes the same iterations as the run straight through: θ, Adam's moments, the
+    expanding region (25, 50, 75, 100 steps of the 100-step horizon, then 100), the attraction's decaying weight and
+    the best so far all carry over. Same to float32 rounding, not bit for bit: the backward pass adds into the
+    grid's gradients from several threads in no fixed order, so two runs straight through differ too (by 1e-8 to
+    3e-8 of the loss after four or five iterations, and θ after the last Adam step by up to 1.8e-5 of the tool's
+    top speed, seen here); the resumed run's θ after its step differs from the straight run's by 2.4e-9 of it
+    (bound 3e-4), and a resume that dropped Adam's moments steps elsewhere, by 0.12 of it (bound 1e-2). A state of another run is refused by
+    the field that differs."""
+    from fluidlab_core import benchmark
+
+    task = gathering
+    budget = 4 * task.horizon
+    straight, states = [], []
+    full = dp.run(task, budget, seed=3, callback=lambda p: straight.append(p) or states.append(p.state()))
+    spec = {"task": task.name, "method": "dp", "seed": 3, "size": "small", "budget": budget, "out": str(tmp_path)}
+    benchmark.save_partial(benchmark.partial_path(spec), spec, states[3], {"curve": [], "eval": 0.0, "wall": 1.0})
+    saved, _ = benchmark.load_partial(benchmark.partial_path(spec), spec)
+    resumed = []
+    again = dp.run(task, budget, seed=3, callback=resumed.append, resume=saved)
+    forgetful = []  # the same state without Adam's moments: what the test must tell apart
+    dp.run(task, budget, seed=3, callback=forgetful.append,
+           resume={**saved, "adam_m": 0 * saved["adam_m"], "adam_v": 0 * saved["adam_v"], "adam_t": 0})
+    print(f"\nDP regions straight through {[p.region for p in straight]}, resumed after 4: "
+          f"{[p.region for p in resumed]}; last loss straight {straight[-1].loss:.10g}, resumed "
+          f"{resumed[-1].loss:.10g}, without Adam's moments {forgetful[-1].loss:.10g}")
+    assert [p.region for p in straight] == [25, 50, 75, 100, 100] and len(resumed) == 1
+    assert [(p.iteration, p.steps, p.region) for p in resumed] == [(p.iteration, p.steps, p.region) for p in straight[4:]]
+    assert resumed[0].loss == pytest.approx(straight[4].loss, rel=1e-6)
+    assert resumed[0].best_loss == pytest.approx(straight[4].best_loss, rel=1e-6)
+    # where each run would go next: θ after the last Adam step (the first that the moments steer)
+    after = {name: runs[-1].state()["theta"] for name, runs in
+             (("straight", straight), ("resumed", resumed), ("forgetful", forgetful))}
+    off, forgot = (np.abs(after[k] - after["straight"]).max() for k in ("resumed", "forgetful"))
+    print(f"largest |Δθ| after the last step against straight through: resumed {off:.3g}, without Adam's moments "
+          f"{forgot:.3g} (max tool speed {task.max_tool_speed})")
+    assert off < 3e-4 * task.max_tool_speed and forgot > 1e-2 * task.max_tool_speed
+    np.testing.assert_allclose(again.theta, full.theta, rtol=0, atol=3e-4 * task.max_tool_speed)
+    np.testing.assert_allclose(again.history, full.history, rtol=1e-6)
+    assert again.iterations == full.iterations == 5
+    with pytest.raises(ValueError, match="the saved DP state is for seed 3, this run has 4"):
+        dp.run(task, budget, seed=4, resume=saved)
+    with pytest.raises(ValueError, match="holds run 'GatheringEasy.dp.3.small.400', not 'GatheringEasy.dp-h.3"):
+        benchmark.load_partial(benchmark.partial_path(spec), {**spec, "method": "dp-h"})
+
+
+def test_an_interrupted_benchmark_run_resumes_from_its_snapshot(gathering, tmp_path, monkeypatch):
+    """A benchmark run of hours must survive an interrupted session: a DP run (the no-expanding-region ablation, two
+    whole-horizon iterations of GatheringEasy) stopped by an error after its first iteration leaves its snapshot in
+    OUT/partial/ (saved every iteration here: snapshot_minutes 0); the run started again continues there (its
+    record says `resumed` at 100 steps, two iterations in all, the curve's checkpoint before the restart kept), and
+    the snapshot is deleted once the record is in runs.jsonl (benchmark.finish, which the sweep calls for each run
+    that returns). Both runs use this module's task, whose simulators are compiled (run_job would otherwise build
+    and compile its own, and reset Taichi for its seed)."""
+    import fluidlab_core
+    from fluidlab_core import benchmark
+
+    real = optim.optimise
+
+    class Interrupted(Exception):
+        pass
+
+    def interrupted_after_one(task, method, budget, callback=None, **kw):
+        def cb(p):
+            callback(p)  # the run's own callback, which saves the snapshot
+            raise Interrupted("the session ended")
+        return real(task, method, budget, callback=cb, **kw)
+
+    monkeypatch.setattr(tasks, "make", lambda name, size: gathering)
+    monkeypatch.setattr(fluidlab_core, "init", lambda **kw: None)
+    spec = {"task": "GatheringEasy", "method": "dp-no-expanding", "seed": 0, "size": "small", "budget": 200,
+            "arch": "cpu", "threads": None, "checkpoints": 2, "out": str(tmp_path), "snapshot_minutes": 0.0}
+    monkeypatch.setattr(optim, "optimise", interrupted_after_one)
+    first = benchmark.run_job(spec)
+    monkeypatch.setattr(optim, "optimise", real)
+    assert "Interrupted: the session ended" in first["error"]
+    snap = benchmark.partial_path(spec)
+    state, bench = benchmark.load_partial(snap, spec)
+    assert state["steps_used"] == 100 and state["iteration"] == 1 and [c[0] for c in bench["curve"]] == [100]
+    rec = benchmark.run_job(spec)
+    assert "final_loss" in rec, rec.get("traceback")
+    assert rec["resumed"] == [100] and rec["iterations"] == 2 and rec["steps_used"] == 200
+    assert [c[0] for c in rec["curve"]] == [100, 200] and rec["curve"][0] == bench["curve"][0]
+    assert rec["wall"] >= bench["wall"] and snap.exists()  # kept until the record is in runs.jsonl
+    benchmark.finish(tmp_path, rec)
+    assert not snap.exists()
+    assert [r["key"] for r in benchmark.load_runs(tmp_path / "runs.jsonl")] == [rec["key"]]
 
 
 def test_dp_windows_cover_the_horizon_once():

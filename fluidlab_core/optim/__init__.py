@@ -13,6 +13,8 @@ for tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is
   the run, which then returns the best trajectory so far,
 - is judged by the loss of its best parameters on the task's reference physics (hard contact), which the
   returned trajectory records in `metadata["final_loss"]` with the reward return.
+Methods in RESUMABLE ("dp", "dp-h" and DP's ablations) also hand the callback `progress.state()`, their whole
+state after the iteration, and `optimise(..., resume=state)` continues a run from it (optim/dp.py).
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from fluidlab_core.optim.progress import Progress, Result
 
 PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
 METHODS = (*PAPER_METHODS, "dp-window")
+RESUMABLE = ("dp", "dp-h")  # methods that can continue from a saved state (DP with techniques off too)
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
@@ -57,11 +60,12 @@ TECHNIQUES = ("soft_contact", "expanding_region", "attraction", "gradient_sharin
 
 
 def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_iterations: int | None = None,
-             size: str = "small", without=(), min_generations: int | None = None):
+             size: str = "small", without=(), min_generations: int | None = None, resume: dict | None = None):
     """Optimise `task` (a Task or a task name, made at `size`) and return its Trajectory. `without`: DP techniques
     to switch off (names from TECHNIQUES), for ablations; only with method "dp". `min_generations` (CMA-ES): the
     population is chosen so that the budget holds that many complete generations, and a budget that cannot is
-    refused before anything runs (optim/cmaes.py)."""
+    refused before anything runs (optim/cmaes.py). `resume`: a state from `progress.state()` of an earlier run of
+    the same method, task, seed and budget (methods in RESUMABLE only), to continue that run."""
     from fluidlab_core import tasks
     from fluidlab_core.optim import cmaes, dp, pods, rl
 
@@ -74,6 +78,8 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         raise ValueError(f"unknown DP technique(s) {', '.join(map(repr, unknown))}; techniques: {', '.join(TECHNIQUES)}")
     if without and method != "dp":
         raise ValueError(f"switching techniques off applies to method 'dp' only ({method} has none to switch)")
+    if resume is not None and method not in RESUMABLE:
+        raise ValueError(f"{method} cannot resume a saved state (resumable: {', '.join(RESUMABLE)}); start it again")
     if method == "pods":
         result = pods.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
     elif method in rl.RL_METHODS:
@@ -84,7 +90,8 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
     else:
         opts = (dp.DPOptions(**{w: False for w in without}) if method == "dp" else
                 dp.DPOptions.windowed(task) if method == "dp-window" else dp.DPOptions.plain())
-        result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations)
+        result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations,
+                        resume=resume)
     par = result.parametrisation
     actions, position = par.actions(result.theta), par.tool_position(result.theta)
     final = task.evaluate(actions, tool_position=position)
@@ -95,4 +102,4 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            loss_history=result.history, metadata=meta)
 
 
-__all__ = ["optimise", "check_request", "METHODS", "PAPER_METHODS", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]
+__all__ = ["optimise", "check_request", "METHODS", "PAPER_METHODS", "RESUMABLE", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]

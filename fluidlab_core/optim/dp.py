@@ -39,6 +39,13 @@ is evaluated forward (its steps count in the budget) for the best so far.
 
 Budget: simulated steps. An iteration over r steps counts r (the backward pass re-simulates those steps too
 and costs a few forward passes in time; the reports give wall time beside steps).
+
+Resuming (DP, DP-H and the ablations; not "dp-window"): each Progress carries `state()`, the whole loop's state
+after that iteration (θ, Adam's moments and step count, the best so far, the region and its recent losses, the
+helpers' weights, steps, iterations, seconds) as a dict of numbers and arrays, and `run(..., resume=state)`
+continues from it: on the CPU (bit-identical reruns) the resumed run's iterates equal an uninterrupted run's. A
+state is refused when its method, task, seed, budget or parameter count differs from the run's. The benchmark
+saves it every few minutes, so that a run of hours survives an interrupted session (benchmark.py).
 """
 from __future__ import annotations
 
@@ -109,10 +116,40 @@ def _start(task, seed: int, opts: DPOptions):
     return par, theta, lr, sim
 
 
+STATE_FORMAT = "fluidlab-dp-state"
+STATE_VERSION = 1
+
+
+def _grown(region: int, region_losses: list, steps_used: int, horizon: int, budget: int) -> tuple[int, list]:
+    """The expanding region after an iteration: a quarter of the horizon more when the loss over the region stopped
+    improving (relative change ≤ 2 % over two iterations) or when the schedule demands it (the whole horizon by
+    half the budget); the region's recent losses start again when it grows."""
+    if region < horizon:
+        plateau = len(region_losses) >= 3 and abs(region_losses[-1] - region_losses[-3]) <= \
+            0.02 * abs(region_losses[-3])
+        forced = region < horizon * min(1.0, 0.25 + 1.5 * steps_used / budget)
+        if plateau or forced:
+            return min(horizon, region + int(np.ceil(0.25 * horizon))), []
+    return region, region_losses
+
+
+def _check_state(state: dict, method: str, task, seed: int, budget: int, n_params: int):
+    """Refuse a saved state that belongs to another run, naming the field that differs."""
+    if state.get("format") != STATE_FORMAT or int(state.get("version", -1)) != STATE_VERSION:
+        raise ValueError(f"not a DP state of version {STATE_VERSION} (format {state.get('format')!r}, version "
+                         f"{state.get('version')!r})")
+    want = {"method": method, "task": task.name, "seed": int(seed), "budget": int(budget), "n_params": int(n_params)}
+    for key, value in want.items():
+        if state.get(key) != value:
+            raise ValueError(f"the saved DP state is for {key} {state.get(key)!r}, this run has {value!r}")
+
+
 def run(task, budget: int, seed: int, callback=None, options: DPOptions | None = None, method: str = "dp",
-        max_iterations: int | None = None) -> Result:
+        max_iterations: int | None = None, resume: dict | None = None) -> Result:
     opts = options or DPOptions()
     if opts.gradient_window is not None:
+        if resume is not None:
+            raise ValueError("DP over windows (dp-window) cannot resume a saved state; start it again")
         return _run_windows(task, budget, seed, callback, opts, method, max_iterations)
     par, theta, lr, sim = _start(task, seed, opts)
     adam = _Adam(lr)
@@ -127,8 +164,39 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     scales: list[float | None] = [None] * len(helpers)
     history, steps_used, iteration = [], 0, 0
     best = (np.inf, theta.copy())
-    t0 = time.perf_counter()
     region_losses: list[float] = []
+    elapsed_before = 0.0
+    if resume is not None:
+        _check_state(resume, method, task, seed, budget, par.size)
+        theta = np.array(resume["theta"], dtype=float)
+        adam.m, adam.v, adam.t = np.array(resume["adam_m"], float), np.array(resume["adam_v"], float), int(resume["adam_t"])
+        history = [float(x) for x in resume["history"]]
+        steps_used, iteration, region = int(resume["steps_used"]), int(resume["iteration"]), int(resume["region"])
+        best = (float(resume["best_loss"]), np.array(resume["best_theta"], dtype=float))
+        region_losses = [float(x) for x in resume["region_losses"]]
+        scales = [None if x is None else float(x) for x in resume["scales"]]
+        if len(scales) != len(helpers):
+            raise ValueError(f"the saved DP state has {len(scales)} helper weight(s), this run has {len(helpers)} "
+                             "(attraction, gradient sharing): another set of techniques")
+        if attraction is not None:
+            attraction.weight = (scales[0] or 0.0) * 0.5 ** iteration
+        if sharing is not None:
+            sharing.weight = scales[-1] or 0.0
+        elapsed_before = float(resume["elapsed"])
+    t0 = time.perf_counter() - elapsed_before
+
+    def state() -> dict:
+        """The loop's state after the last iteration (what `resume` takes)."""
+        nxt, nxt_losses = _grown(region, region_losses, steps_used, horizon, budget)
+        return {"format": STATE_FORMAT, "version": STATE_VERSION, "method": method, "task": task.name,
+                "seed": int(seed), "budget": int(budget), "n_params": int(par.size), "theta": theta.copy(),
+                "adam_m": adam.m.copy(), "adam_v": adam.v.copy(), "adam_t": int(adam.t),
+                "history": [float(x) for x in history], "steps_used": int(steps_used), "iteration": int(iteration),
+                "region": int(nxt), "region_losses": [float(x) for x in nxt_losses],
+                "best_loss": float(best[0]), "best_theta": best[1].copy(),
+                "scales": [None if x is None else float(x) for x in scales],
+                "elapsed": float(time.perf_counter() - t0)}
+
     while steps_used + region <= budget and (max_iterations is None or iteration < max_iterations):
         actions = par.actions(theta)
         task.reset(sim, par.tool_position(theta))
@@ -158,15 +226,9 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
         elapsed = time.perf_counter() - t0
         region_losses.append(task_loss)
         if callback and callback(Progress(method, iteration, task_loss, best[0], steps_used, budget, elapsed,
-                                          region, best[1], par)):
+                                          region, best[1], par, state)):
             break
-        if region < horizon:
-            plateau = len(region_losses) >= 3 and abs(region_losses[-1] - region_losses[-3]) <= \
-                0.02 * abs(region_losses[-3])
-            forced = region < horizon * min(1.0, 0.25 + 1.5 * steps_used / budget)
-            if plateau or forced:
-                region = min(horizon, region + int(np.ceil(0.25 * horizon)))
-                region_losses = []
+        region, region_losses = _grown(region, region_losses, steps_used, horizon, budget)
     if not np.isfinite(best[0]):  # never reached the whole horizon: keep the last parameters
         best = (np.nan, theta)
     return Result(par, best[1], history, steps_used, iteration, time.perf_counter() - t0,

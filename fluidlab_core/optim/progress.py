@@ -22,6 +22,7 @@ class Progress:
     region: int
     best_theta: object = None  # the parameters behind best_loss (for a caller that evaluates them elsewhere)
     parametrisation: object = None  # what turns them into actions: .actions(θ), .tool_position(θ)
+    state: object = None  # where the method can resume (DP, DP-H): a callable returning its state after this iteration
 
     def line(self) -> str:
         best = "-" if not np.isfinite(self.best_loss) else f"{self.best_loss:.5g}"
