@@ -638,12 +638,15 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
                     f"({rec['wall']:.0f} s; sweep {time.perf_counter() - t0:.0f} s)")
         finally:
             shutdown()
-    text = table(records, refused)
-    (out / "table.txt").write_text(text + "\n")
-    (out / "table2.md").write_text(paper_table(records) + "\n")
-    log(text)
-    for path in plot(records, out):
-        log(f"wrote {path}")
+    # the table, Table 2 and the plots cover every run finished in OUT, not only this sweep's: a sweep that
+    # continues one run (the README's command for a snapshot) would otherwise replace the folder's table with it
+    if runs_path.exists():
+        report(out, log=log, refused=refused)
+    else:  # nothing ran (every request refused)
+        text = table(records, refused)
+        (out / "table.txt").write_text(text + "\n")
+        (out / "table2.md").write_text(paper_table(records) + "\n")
+        log(text)
     return records
 
 
@@ -731,9 +734,9 @@ def reevaluate(out: Path, tasks_=None, arch: str = "cpu", threads: int | None = 
     return done
 
 
-def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
+def report(out: Path, tasks_=None, methods=None, log=print, refused=None) -> list[dict]:
     """Table, Table 2 and plots of the finished runs in OUT/runs.jsonl (of the given tasks and methods, all by
-    default), without running anything."""
+    default), without running anything; `refused`: the sweep's refused requests, listed under the table."""
     runs_path = Path(out) / "runs.jsonl"
     if not runs_path.exists():
         raise ValueError(f"no runs to report: {runs_path} does not exist")
@@ -745,7 +748,7 @@ def report(out: Path, tasks_=None, methods=None, log=print) -> list[dict]:
     rank = {m: i for i, m in enumerate((STILL, *METHODS, *ABLATIONS))}
     records.sort(key=lambda r: (order.get(r["task"], len(order)), rank.get(r["method"], len(rank)), r["seed"]))
     now = {r["key"]: r["final_loss_now"] for r in load_runs(Path(out) / REEVALUATED) if "key" in r}
-    text = table(records, now=now)
+    text = table(records, refused, now=now)
     (Path(out) / "table.txt").write_text(text + "\n")
     (Path(out) / "table2.md").write_text(paper_table(records) + "\n")
     log(text)

@@ -115,6 +115,9 @@ def _sweep_twice(tmp_path):
     assert [c[0] for c in r["curve"]] == [150, 300, 450, 600]  # an episode ends on every checkpoint
     assert np.isclose(min(c[1] for c in r["curve"]), r["final_loss"], rtol=1e-6)
     assert (tmp_path / r["trajectory"]).is_file()
+    # a sweep of one method writes the folder's table of every finished run, not of its own runs alone
+    table = (tmp_path / "table.txt").read_text()
+    assert "ppo" in table and "cma-es" in table and " 2 " in table, table
 
 
 def test_fluidlab_benchmark_refuses_an_unknown_task_by_name(capsys):
