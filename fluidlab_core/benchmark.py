@@ -44,8 +44,8 @@ optim.RESUMABLE (DP, DP-H, DP's ablations) also saves its state every `--snapsho
 OUT/partial/<run>.npz (the optimiser's state and the run's curve and times so far, written atomically); a sweep
 started again continues such a run from its last snapshot instead of from the start, and the record says so
 (`resumed`: the steps at each restart; its wall time is the sum of its sessions'). The snapshot is deleted once the
-run's record is in runs.jsonl. Other methods start an interrupted run again. Then come the
-table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
+run's record is in runs.jsonl. Other methods start an interrupted run again. Then come, over every run finished
+in OUT (this sweep's and earlier ones'), the table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
 (OUT/curves_<task>.png), an overview of every task (OUT/overview.png) and the trajectories (OUT/trajectories/).
 """
 from __future__ import annotations
