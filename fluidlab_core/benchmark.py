@@ -45,8 +45,9 @@ OUT/partial/<run>.npz (the optimiser's state and the run's curve and times so fa
 started again continues such a run from its last snapshot instead of from the start, and the record says so
 (`resumed`: the steps at each restart; its wall time is the sum of its sessions'). The snapshot is deleted once the
 run's record is in runs.jsonl. Other methods start an interrupted run again. Then come, over every run finished
-in OUT (this sweep's and earlier ones'), the table (OUT/table.txt, and OUT/table2.md in the layout of the paper's Table 2), one plot per task
-(OUT/curves_<task>.png), an overview of every task (OUT/overview.png) and the trajectories (OUT/trajectories/).
+in OUT (this sweep's and earlier ones'), the table (OUT/table.txt, and OUT/table2.md in the layout of the paper's
+Table 2), one plot per task (OUT/curves_<task>.png), an overview of every task (OUT/overview.png) and the
+trajectories (OUT/trajectories/).
 """
 from __future__ import annotations
 
@@ -643,10 +644,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     if runs_path.exists():
         report(out, log=log, refused=refused)
     else:  # nothing ran (every request refused)
-        text = table(records, refused)
-        (out / "table.txt").write_text(text + "\n")
-        (out / "table2.md").write_text(paper_table(records) + "\n")
-        log(text)
+        _write_report(out, records, refused, {}, log)
     return records
 
 
@@ -748,13 +746,18 @@ def report(out: Path, tasks_=None, methods=None, log=print, refused=None) -> lis
     rank = {m: i for i, m in enumerate((STILL, *METHODS, *ABLATIONS))}
     records.sort(key=lambda r: (order.get(r["task"], len(order)), rank.get(r["method"], len(rank)), r["seed"]))
     now = {r["key"]: r["final_loss_now"] for r in load_runs(Path(out) / REEVALUATED) if "key" in r}
-    text = table(records, refused, now=now)
-    (Path(out) / "table.txt").write_text(text + "\n")
-    (Path(out) / "table2.md").write_text(paper_table(records) + "\n")
-    log(text)
-    for path in plot(records, Path(out)):
-        log(f"wrote {path}")
+    _write_report(Path(out), records, refused, now, log)
     return records
+
+
+def _write_report(out: Path, records: list[dict], refused, now: dict, log) -> None:
+    """OUT/table.txt, OUT/table2.md and the plots of `records`, the table logged."""
+    text = table(records, refused, now=now)
+    (out / "table.txt").write_text(text + "\n")
+    (out / "table2.md").write_text(paper_table(records) + "\n")
+    log(text)
+    for path in plot(records, out):
+        log(f"wrote {path}")
 
 
 def main(argv=None) -> int:
