@@ -66,6 +66,8 @@ class DiffSolver(Solver):
     """The time-indexed, differentiable solver (see the module docstring); its state is `self.state`."""
 
     def __init__(self, model, n_slots: int, scatter_copies: int = 0):
+        if model.has_flip:
+            raise ValueError("the differentiable solver transfers by APIC: AFLIP (Model.flip > 0) has no backward")
         super().__init__(model, scatter_copies, needs_grad=True)
         real, n = model.real, model.n_particles
         self.n_slots = int(n_slots)

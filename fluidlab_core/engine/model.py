@@ -65,6 +65,7 @@ class ModelSpec:
     emitter_of: np.ndarray | None = None  # (N,) the emitter whose pool a particle belongs to, or -1
     pool_index: np.ndarray | None = None  # (N,) its place in that emitter's emission order
     contact_fill: float = 0.97  # node volume fill at which fluids and solids share a velocity (grid.py)
+    flip: float = 0.0  # FLIP share α of the liquids' velocity update (transfer.py, "AFLIP"); 0: APIC
 
 
 @ti.data_oriented
@@ -100,6 +101,9 @@ class Model:
         self.fluid_models = [k for k, m in enumerate(self.constitutive) if m.fluid]
         self.two_fields = 0 < len(self.fluid_models) < len(self.constitutive)
         self.contact_fill = float(spec.contact_fill)
+        # AFLIP (transfer.py): the liquids' particles keep α of their own velocity's difference from the grid's
+        self.flip = float(spec.flip)
+        self.has_flip = self.flip > 0.0 and len(self.fluid_models) > 0
         # the contact test's share of each node's stencil beyond the walls or inside statics (grid.solid_share_of),
         # constant: filled once in upload()
         self.solid_share = ti.field(real, shape=self.grid_shape) if self.two_fields else None

@@ -67,6 +67,13 @@ class Solver:
                 self.copies_m_f = ti.field(real, shape=shape)  # the same for the fluids' field
                 self.copies_mv_f = ti.Vector.field(3, real, shape=shape)
                 self.copies_vol = ti.field(real, shape=shape)  # per-thread particle volume (m³)
+        self.has_flip = model.has_flip
+        if self.has_flip:  # AFLIP (transfer.py): the liquids' transfer momentum without stress, and its velocity
+            self.grid_v0 = ti.Vector.field(3, real, shape=model.grid_shape)  # v⁰_i (m/s), the liquids' field
+            if self.private:
+                self.copies_mv0 = ti.Vector.field(3, real, shape=(self.copies,) + tuple(model.grid_shape))
+            else:
+                self.grid_mv0 = ti.Vector.field(3, real, shape=model.grid_shape)  # (kg m/s)
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -107,6 +114,8 @@ class Solver:
                     self.grid_m_f[I] = 0.0
                     self.grid_mv_f[I] = ti.Vector.zero(float, 3)
                     self.grid_vol[I] = 0.0
+                if ti.static(self.has_flip):
+                    self.grid_mv0[I] = ti.Vector.zero(float, 3)
             for p in range(self.n_particles):
                 if ti.static(host_twist):
                     if p == 0:
@@ -144,6 +153,19 @@ class Solver:
                 self.grid_v[I] = vn
                 if ti.static(keep):
                     self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
+            if ti.static(self.has_flip):
+                mv0 = ti.Vector.zero(float, 3)
+                if ti.static(self.private):
+                    mv0 = transfer.reduce_vector_copies(self.copies_mv0, self.copies, I)
+                else:
+                    mv0 = self.grid_mv0[I]
+                m_liquid = m
+                if ti.static(self.two_fields):
+                    m_liquid = self.grid_m_f[I]
+                v0 = ti.Vector.zero(float, 3)
+                if m_liquid > self.model.mass_floor:
+                    v0 = mv0 / m_liquid
+                self.grid_v0[I] = v0
         # G2P (and the tools' advance: nothing reads their poses after the grid update, except a nozzle that a
         # tool carries or a tool that keeps particles out, whose particles then read slot s_in: the advance then
         # waits for the end of the loop)
@@ -179,6 +201,10 @@ class Solver:
         else:
             new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
         xp = state.x[s_in, p] + self.model.dt * new_v
+        if ti.static(self.has_flip):  # AFLIP: advected by v_PIC, keeps α of its own velocity's detail
+            if transfer.is_fluid(self.model, p):
+                new_v += self.model.flip * (state.v[s_in, p] - transfer.gather_velocity(
+                    self.model, self.grid_v0, state.x[s_in, p]))
         if ti.static(keep):
             self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
             if ti.static(self.has_rigid):
@@ -259,6 +285,14 @@ class Solver:
             else:
                 transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p],
                                  state.v[s_in, p], Cp, tau, p)
+            if ti.static(self.has_flip):
+                if transfer.is_fluid(self.model, p):
+                    if ti.static(self.private):
+                        transfer.scatter_momentum(self.model, self.copies_mv0, c, True, state.x[s_in, p],
+                                                  state.v[s_in, p], Cp, p)
+                    else:
+                        transfer.scatter_momentum(self.model, self.grid_mv0, c, False, state.x[s_in, p],
+                                                  state.v[s_in, p], Cp, p)
 
     @ti.func
     def _twists_from_host(self, state: ti.template(), s, twist: ti.template()):

@@ -8,6 +8,16 @@ One substep of length Δt (Hu et al. 2018, "A moving least squares material poin
     grid  v_i from m_i, (mv)_i and the boundary conditions                             (grid.py)
     G2P   v_p = Σ w_ip v_i,  C_p = (4/Δx²) Σ w_ip v_i (x_i − x_p)ᵀ,  x_p ← x_p + Δt v_p
 
+AFLIP (Fei et al. 2021, "Revisiting integration in the material point method", §4), for the liquids' particles
+when the Scene's `flip` α > 0 (forward solver only). APIC's round trip v_p → grid → v_p keeps only the part of
+the particles' velocities that the grid's affine fit holds; the rest is smoothed away at every transfer, a
+numerical viscosity that grows with the number of substeps. AFLIP gives a share α of it back:
+    P2G   also (mv⁰)_i += w_ip m_p (v_p + C_p (x_i − x_p)),  v⁰_i = (mv⁰)_i / m_i   (the transfer alone, no stress)
+    G2P   v_PIC = Σ w_ip v_i,  C_p as APIC,  x_p ← x_p + Δt v_PIC            (positions advected by PIC)
+          v_p ← v_PIC + α (v_p − Σ w_ip v⁰_i)                                 (FLIP's increment, share α)
+α = 0 is APIC; α → 1 is FLIP with APIC's affine part, which keeps modes the grid cannot see (noise) and
+needs a little PIC (α ≤ 0.99). Cost: a second momentum scatter and a velocity gather (bench/numerical_dissipation.py).
+
 Scatter targets: on the CPU each thread scatters its share of particles into a grid copy of its own
 (`private`: plain read-modify-writes, no atomic float adds, which are compare-and-swap loops on x64 and cost
 ~88 % of a substep) and the copies are summed per node (`reduce_copies`); on a GPU the scatter is atomic.
@@ -101,6 +111,23 @@ def scatter(model: ti.template(), target_m: ti.template(), target_mv: ti.templat
 
 
 @ti.func
+def scatter_momentum(model: ti.template(), target_mv: ti.template(), c, private: ti.template(), xp, vp, Cp, p):
+    """AFLIP's transfer momentum of particle p: w m_p (v_p + C_p (x_i − x_p)), without the stress."""
+    base, fx, w = stencil(model, xp)
+    mp = model.mass[p]
+    affine = mp * Cp
+    momentum = mp * vp
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        dpos = (offset - fx) * model.dx
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        if ti.static(private):
+            i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+            target_mv[c, i, j, k] = target_mv[c, i, j, k] + weight * (momentum + affine @ dpos)
+        else:
+            target_mv[base + offset] += weight * (momentum + affine @ dpos)
+
+
+@ti.func
 def scatter_volume(model: ti.template(), target: ti.template(), c, private: ti.template(), xp, vol):
     """The particle volume vol (m³) at xp onto the nodes of its stencil (the contact test of grid.py)."""
     base, fx, w = stencil(model, xp)
@@ -134,6 +161,27 @@ def reduce_copies(copies_m: ti.template(), copies_mv: ti.template(), n_copies: t
         copies_m[c, I[0], I[1], I[2]] = 0.0
         copies_mv[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
     return m, mv
+
+
+@ti.func
+def reduce_vector_copies(copies: ti.template(), n_copies: ti.template(), I):
+    """Node I of a vector field summed over its grid copies, which are zeroed for the next substep."""
+    out = ti.Vector.zero(float, 3)
+    for c in range(n_copies):
+        out += copies[c, I[0], I[1], I[2]]
+        copies[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 3)
+    return out
+
+
+@ti.func
+def gather_velocity(model: ti.template(), grid_v: ti.template(), xp):
+    """Σ w_ip v_i at position xp (AFLIP's grid velocity before the update)."""
+    base, fx, w = stencil(model, xp)
+    out = ti.Vector.zero(float, 3)
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        out += weight * grid_v[base + offset]
+    return out
 
 
 @ti.func
