@@ -45,14 +45,16 @@ def vortex_decay(res: int, duration: float, eta: float = 0.0, bulk_factor: float
     return rate, substeps, k
 
 
-def cube_rise(res: int, seconds: float = 0.15, flip: float = 0.0):
-    """(rise of a submerged 500 kg/m³ rigid cube after `seconds`, m; substeps); flip: the Scene's AFLIP share."""
+def cube_rise(res: int, seconds: float = 0.15, flip: float = 0.0, jbar: bool = False):
+    """(rise of a submerged 500 kg/m³ rigid cube after `seconds`, m; substeps); flip, jbar: the Scene's AFLIP share
+    and J-bar."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
     from fluidlab_core.shapes import Box
 
     width, b, bottom, level = 0.12, 0.04, 0.03, 0.09
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1, flip=flip)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, width, 0.12), grid_res=res, dt=2e-3, substeps=1, flip=flip,
+                     jbar=jbar)
     lo, hi, top = width / 2 - b / 2, width / 2 + b / 2, bottom + b
     for box in [((0, 0, 0), (width, width, bottom)), ((0, 0, bottom), (lo, width, top)),
                 ((hi, 0, bottom), (width, width, top)), ((lo, 0, bottom), (hi, lo, top)),

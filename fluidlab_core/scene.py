@@ -87,7 +87,7 @@ class Scene:
     def __init__(self, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0), grid_res: int = 64, dt: float = 2e-3,
                  substeps: int = 10, gravity=(0.0, 0.0, -9.81), particle_spacing: float | None = None,
                  max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0,
-                 contact_fill: float = 0.97, flip: float = 0.0):
+                 contact_fill: float = 0.97, flip: float = 0.0, jbar: bool = False):
         """lower/upper: the domain walls (m). grid_res: cells along the longest side. dt: one `step` (s),
         split into `substeps`. particle_spacing: sampling lattice (m, default Δx/2). max_speed: fastest
         expected speed for the stability check (m/s). wall_friction: Coulomb coefficient of the domain walls.
@@ -111,6 +111,7 @@ class Scene:
         if not (0.0 <= flip < 1.0):
             raise ValueError(f"flip must be in [0, 1) (the FLIP share of the liquids' velocity update), got {flip!r}")
         self.flip = float(flip)
+        self.jbar = bool(jbar)
         self.grid_res = int(grid_res)
         self.dx = float((self.upper - self.lower).max() / self.grid_res)
         self.dt = float(dt)
@@ -559,6 +560,9 @@ class Scene:
         if requires_grad and self.flip > 0:
             raise ValueError(f"flip={self.flip} (AFLIP) has a forward only: the differentiable solver transfers by "
                              "APIC; build with requires_grad=False, or make the Scene with flip=0 for gradients")
+        if requires_grad and self.jbar:
+            raise ValueError("jbar=True (the liquids' J averaged through the grid) has a forward only; build with "
+                             "requires_grad=False, or make the Scene with jbar=False for gradients")
         if self.gas is not None and not self.bodies:
             return self._build_gas(requires_grad)
         from fluidlab_core.engine.model import Model, ModelSpec
@@ -575,7 +579,7 @@ class Scene:
         spec = ModelSpec(
             lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, substeps=self.substeps,
             gravity=self.gravity, wall_friction=self.wall_friction, contact_fill=self.contact_fill,
-            flip=self.flip,
+            flip=self.flip, jbar=self.jbar,
             x=np.concatenate([b.points for b in self.bodies]), v=np.concatenate([b.velocity for b in self.bodies]),
             material_index=np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles]),
             body_index=np.concatenate([np.full(h.count, h.body) for h in handles]),

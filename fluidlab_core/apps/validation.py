@@ -56,16 +56,17 @@ def _substeps(scene, substeps):
 
 
 def dam_break(res: int = 64, a: float = 0.1, length: float = 0.5, substeps: int | None = 10, liquid=None,
-              flip: float = 0.0) -> dict:
+              flip: float = 0.0, jbar: bool = False) -> dict:
     """The collapsing column of `liquid` (default the catalogue's water) in a tank `length` long, `res` cells
-    along it (substeps None: the stable count; flip: the Scene's AFLIP share)."""
+    along it (substeps None: the stable count; flip, jbar: the Scene's AFLIP share and J-bar)."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
 
     liquid = liquid or M.WATER
     dx = length / res
     thick = 2 * dx
-    scene = fl.Scene(lower=(0, 0, 0), upper=(length, thick, 0.25), grid_res=res, dt=2e-3, substeps=1, flip=flip)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(length, thick, 0.25), grid_res=res, dt=2e-3, substeps=1, flip=flip,
+                     jbar=jbar)
     scene.add_particles(fl.Box((0.0, 0.0, 0.0), (a, thick, 2 * a)), liquid, name="water")
     _substeps(scene, substeps)
     sim = scene.build()
@@ -84,9 +85,9 @@ def dam_break(res: int = 64, a: float = 0.1, length: float = 0.5, substeps: int 
 
 
 def water_column(res: int = 16, width: float = 0.16, height: float = 0.12, steps: int = 1000, average: int = 100,
-                 substeps: int | None = 10, liquid=None, flip: float = 0.0) -> dict:
-    """Water (or `liquid`) at rest (flip: the Scene's AFLIP share), `steps` steps of 2 ms; pressure averaged over the last `average` steps (the
-    liquid rings with sound waves that APIC barely damps). Particles within 1.5 cells of the floor are left out
+                 substeps: int | None = 10, liquid=None, flip: float = 0.0, jbar: bool = False) -> dict:
+    """Water (or `liquid`) at rest (flip, jbar: the Scene's AFLIP share and J-bar), `steps` steps of 2 ms;
+    pressure averaged over the last `average` steps (the liquid rings with sound waves that APIC barely damps). Particles within 1.5 cells of the floor are left out
     of the fit: their B-spline support reaches into the wall nodes. Also reported: the spread (m, std) of the
     top layer's heights at the end, a measure of how flat the free surface stays."""
     import fluidlab_core as fl
@@ -95,7 +96,7 @@ def water_column(res: int = 16, width: float = 0.16, height: float = 0.12, steps
     liquid = liquid or M.WATER
     dx = width / res
     scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, height + 0.04), grid_res=res, dt=2e-3, substeps=1,
-                     flip=flip)
+                     flip=flip, jbar=jbar)
     scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, height)), liquid, name="water")
     _substeps(scene, substeps)
     sim = scene.build()
@@ -438,18 +439,19 @@ def magnus_held(res: int = 32, alpha: float = 1.0, dims: int = 2, seconds: float
 
 
 def sound_ring(res: int = 24, depth: float = 0.06, seconds: float = 0.4, liquid=None, hydrostatic: bool = False,
-               flip: float = 0.0) -> dict:
+               flip: float = 0.0, jbar: bool = False) -> dict:
     """The column of `liquid` (default the catalogue's water), `depth` deep in a 12 cm slab tank, `res` cells
     across, released at rest (at J = 1, or with `hydrostatic` at its hydrostatic compression,
     Simulator.start_hydrostatic): the mean pressure of a one-cell layer of particles at mid-depth after every 1 ms
-    step, and ring_figures of it. flip: the Scene's AFLIP share."""
+    step, and ring_figures of it. flip, jbar: the Scene's AFLIP share and J-bar."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
 
     liquid = liquid or M.WATER
     width = 0.12
     dx = width / res
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, width), grid_res=res, dt=1e-3, substeps=1, flip=flip)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, 2 * dx, width), grid_res=res, dt=1e-3, substeps=1, flip=flip,
+                     jbar=jbar)
     scene.add_particles(fl.Box((0, 0, 0), (width, 2 * dx, depth)), liquid, name="water")
     _substeps(scene, None)
     sim = scene.build()

@@ -22,14 +22,15 @@ def mode_shape(x, k: float):
 
 
 def vortex_simulator(material, res: int = 24, size: float = 0.1, amplitude: float = 0.1,
-                     substeps: int | None = None, substep_factor: float = 1.0, flip: float = 0.0):
+                     substeps: int | None = None, substep_factor: float = 1.0, flip: float = 0.0,
+                     jbar: bool = False):
     """(simulator, k 1/m) of the slab started on the mode: velocities and their gradient C = ∇v. flip: the
-    Scene's AFLIP share (engine/transfer.py)."""
+    Scene's AFLIP share, jbar its J-bar (engine/transfer.py)."""
     import fluidlab_core as fl
 
     dx = size / res
     scene = fl.Scene(lower=(0, 0, 0), upper=(size, 2 * dx, size), grid_res=res, dt=1e-3, substeps=substeps or 1,
-                     gravity=(0.0, 0.0, 0.0), max_speed=amplitude, flip=flip)
+                     gravity=(0.0, 0.0, 0.0), max_speed=amplitude, flip=flip, jbar=jbar)
     scene.add_particles(fl.Box((0, 0, 0), (size, 2 * dx, size)), material, name="liquid")
     if substeps is None:
         scene.substeps = max(1, int(round(scene.stable_substeps() * substep_factor)))
@@ -47,10 +48,11 @@ def vortex_simulator(material, res: int = 24, size: float = 0.1, amplitude: floa
 
 
 def decay_rate(material, res: int = 24, size: float = 0.1, amplitude: float = 0.1, duration: float = 0.2,
-               every: int = 10, substeps: int | None = None, substep_factor: float = 1.0, flip: float = 0.0):
+               every: int = 10, substeps: int | None = None, substep_factor: float = 1.0, flip: float = 0.0,
+               jbar: bool = False):
     """(fitted decay rate 1/s, k 1/m, substeps per 1 ms step) of the vortex in `material`. substeps: per 1 ms
-    step (default: the stable count × substep_factor); flip: the AFLIP share (0: APIC)."""
-    sim, k = vortex_simulator(material, res, size, amplitude, substeps, substep_factor, flip)
+    step (default: the stable count × substep_factor); flip: the AFLIP share (0: APIC); jbar: the Scene's J-bar."""
+    sim, k = vortex_simulator(material, res, size, amplitude, substeps, substep_factor, flip, jbar)
     times, amps = [], []
     while sim.time <= duration:
         shape, _ = mode_shape(sim.positions("liquid"), k)

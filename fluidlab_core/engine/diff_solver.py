@@ -68,6 +68,8 @@ class DiffSolver(Solver):
     def __init__(self, model, n_slots: int, scatter_copies: int = 0):
         if model.has_flip:
             raise ValueError("the differentiable solver transfers by APIC: AFLIP (Model.flip > 0) has no backward")
+        if model.has_jbar:
+            raise ValueError("the J-bar average (Model.jbar) has no backward in the differentiable solver")
         super().__init__(model, scatter_copies, needs_grad=True)
         real, n = model.real, model.n_particles
         self.n_slots = int(n_slots)

@@ -66,6 +66,7 @@ class ModelSpec:
     pool_index: np.ndarray | None = None  # (N,) its place in that emitter's emission order
     contact_fill: float = 0.97  # node volume fill at which fluids and solids share a velocity (grid.py)
     flip: float = 0.0  # FLIP share α of the liquids' velocity update (transfer.py, "AFLIP"); 0: APIC
+    jbar: bool = False  # the liquids' J averaged through the grid before each substep (transfer.py, "J-bar")
 
 
 @ti.data_oriented
@@ -104,6 +105,7 @@ class Model:
         # AFLIP (transfer.py): the liquids' particles keep α of their own velocity's difference from the grid's
         self.flip = float(spec.flip)
         self.has_flip = self.flip > 0.0 and len(self.fluid_models) > 0
+        self.has_jbar = bool(spec.jbar) and len(self.fluid_models) > 0
         # the contact test's share of each node's stencil beyond the walls or inside statics (grid.solid_share_of),
         # constant: filled once in upload()
         self.solid_share = ti.field(real, shape=self.grid_shape) if self.two_fields else None

@@ -74,6 +74,15 @@ class Solver:
                 self.copies_mv0 = ti.Vector.field(3, real, shape=(self.copies,) + tuple(model.grid_shape))
             else:
                 self.grid_mv0 = ti.Vector.field(3, real, shape=model.grid_shape)  # (kg m/s)
+        self.has_jbar = model.has_jbar
+        if self.has_jbar:  # J-bar (transfer.py): the liquids' mass-weighted J at the nodes
+            self.grid_J = ti.field(real, shape=model.grid_shape)  # J_i
+            if self.private:
+                self.copies_mJ = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m J (kg)
+                self.copies_mliq = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m (kg)
+            else:
+                self.grid_mJ = ti.field(real, shape=model.grid_shape)
+                self.grid_mliq = ti.field(real, shape=model.grid_shape)
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -94,6 +103,29 @@ class Solver:
         state's slots s_in and s_out; with `keep`, the differentiable solver's stores are filled. Each solver's
         kernel takes only the arguments it needs: at small sizes Taichi's handling of a launch's arguments (an
         array, a template) costs as much as a tenth of the substep."""
+        if ti.static(self.has_jbar):  # J-bar: the liquids' J averaged at the nodes, read back in P2G
+            if ti.static(self.private):
+                ti.loop_config(block_dim=1)
+                for c in range(self.copies):
+                    for p in range(c * self.chunk, ti.min((c + 1) * self.chunk, self.n_particles)):
+                        self._scatter_J(state, s_in, c, p)
+            else:
+                for I in ti.grouped(self.grid_J):
+                    self.grid_mJ[I] = 0.0
+                    self.grid_mliq[I] = 0.0
+                for p in range(self.n_particles):
+                    self._scatter_J(state, s_in, 0, p)
+            for I in ti.grouped(self.grid_J):
+                mJ, ml = 0.0, 0.0
+                if ti.static(self.private):
+                    mJ = transfer.reduce_scalar_copies(self.copies_mJ, self.copies, I)
+                    ml = transfer.reduce_scalar_copies(self.copies_mliq, self.copies, I)
+                else:
+                    mJ, ml = self.grid_mJ[I], self.grid_mliq[I]
+                J_node = 1.0
+                if ml > self.model.mass_floor:
+                    J_node = mJ / ml
+                self.grid_J[I] = J_node
         # P2G (and the tools' twists from the host: nothing reads them before the grid update; a serial part of
         # its own would cost a task launch, about 40 µs here)
         if ti.static(self.private):
@@ -243,6 +275,22 @@ class Solver:
                 self._store_g2p(state, s_out, p, state.x[s_in, p], state.v[s_in, p], ti.Matrix.zero(float, 3, 3))
 
     @ti.func
+    def _scatter_J(self, state: ti.template(), s_in, c, p):
+        """J-bar's scatter of a liquid particle's m J and m (an emitter's parked particles take no part)."""
+        active = True
+        if ti.static(self.model.has_emitters):
+            active = self.model.emitters.active(state, s_in, p)
+        if active and transfer.is_fluid(self.model, p):
+            mp = self.model.mass[p]
+            J = state.F[s_in, p].determinant()
+            if ti.static(self.private):
+                transfer.scatter_scalar(self.model, self.copies_mJ, c, True, state.x[s_in, p], mp * J)
+                transfer.scatter_scalar(self.model, self.copies_mliq, c, True, state.x[s_in, p], mp)
+            else:
+                transfer.scatter_scalar(self.model, self.grid_mJ, c, False, state.x[s_in, p], mp * J)
+                transfer.scatter_scalar(self.model, self.grid_mliq, c, False, state.x[s_in, p], mp)
+
+    @ti.func
     def _p2g(self, state: ti.template(), s_in, s_out, keep: ti.template(), c, p):
         """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
         atomically into the grid)."""
@@ -250,10 +298,15 @@ class Solver:
         if ti.static(self.model.has_emitters):
             active = self.model.emitters.active(state, s_in, p)
         Cp = state.C[s_in, p]
+        F_in = state.F[s_in, p]
+        if ti.static(self.has_jbar):
+            if active and transfer.is_fluid(self.model, p):
+                J = F_in.determinant()
+                F_in = ti.pow(transfer.gather_scalar(self.model, self.grid_J, state.x[s_in, p]) / J, 1.0 / 3.0) * F_in
         Fp = ti.Matrix.identity(float, 3)
         tau = ti.Matrix.zero(float, 3, 3)
         if active:
-            Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, state.F[s_in, p]), Cp)
+            Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, F_in), Cp)
         if ti.static(self.has_rigid):
             self.F_model[p] = Fp
         else:
@@ -262,7 +315,7 @@ class Solver:
             self.store_tau[s_in, p] = tau
         if active:  # a pool particle not yet emitted adds nothing to the grid (F = I, τ = 0 until it leaves)
             if ti.static(self.two_fields):
-                vol = self.model.rest_volume[p] * state.F[s_in, p].determinant()
+                vol = self.model.rest_volume[p] * F_in.determinant()
                 if ti.static(self.private):
                     transfer.scatter_volume(self.model, self.copies_vol, c, True, state.x[s_in, p], vol)
                     if transfer.is_fluid(self.model, p):

@@ -16,7 +16,14 @@ numerical viscosity that grows with the number of substeps. AFLIP gives a share 
     G2P   v_PIC = Σ w_ip v_i,  C_p as APIC,  x_p ← x_p + Δt v_PIC            (positions advected by PIC)
           v_p ← v_PIC + α (v_p − Σ w_ip v⁰_i)                                 (FLIP's increment, share α)
 α = 0 is APIC; α → 1 is FLIP with APIC's affine part, which keeps modes the grid cannot see (noise) and
-needs a little PIC (α ≤ 0.99). Cost: a second momentum scatter and a velocity gather (bench/numerical_dissipation.py).
+needs a little PIC (α ≤ 0.99). Cost: a second momentum scatter and a velocity gather (bench/transfer_remedies.py).
+
+J-bar, for the liquids' particles when the Scene's `jbar` is set (forward solver only): before each substep the
+particles' J = det F is averaged through the grid and each liquid particle's F rescaled to it,
+    J_i = Σ_p w_ip m_p J_p / Σ_p w_ip m_p,   J̄_p = Σ_i w_ip J_i,   F_p ← (J̄_p / J_p)^(1/3) F_p,
+which removes the particle-to-particle pattern of J that a divergence-free flow otherwise builds up (J is
+integrated from the grid's divergence, tr C, which depends on where a particle sits between the nodes; docs/engine.md,
+"the vortex's decay and the liquid's J") and keeps the patterns the grid resolves.
 
 Scatter targets: on the CPU each thread scatters its share of particles into a grid copy of its own
 (`private`: plain read-modify-writes, no atomic float adds, which are compare-and-swap loops on x64 and cost
@@ -125,6 +132,30 @@ def scatter_momentum(model: ti.template(), target_mv: ti.template(), c, private:
             target_mv[c, i, j, k] = target_mv[c, i, j, k] + weight * (momentum + affine @ dpos)
         else:
             target_mv[base + offset] += weight * (momentum + affine @ dpos)
+
+
+@ti.func
+def scatter_scalar(model: ti.template(), target: ti.template(), c, private: ti.template(), xp, value):
+    """w_ip value onto the nodes of the stencil at xp (J-bar's m_p J_p and m_p)."""
+    base, fx, w = stencil(model, xp)
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        if ti.static(private):
+            i, j, k = base[0] + offset[0], base[1] + offset[1], base[2] + offset[2]
+            target[c, i, j, k] = target[c, i, j, k] + weight * value
+        else:
+            target[base + offset] += weight * value
+
+
+@ti.func
+def gather_scalar(model: ti.template(), field: ti.template(), xp):
+    """Σ w_ip f_i at position xp."""
+    base, fx, w = stencil(model, xp)
+    out = 0.0
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        out += weight * field[base + offset]
+    return out
 
 
 @ti.func
