@@ -4,7 +4,7 @@ surface every 0.1 s. Archimedes: ρ/ρ_w (0.50 by default, 0.40 for the foam).
 
     python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
         [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3]
-        [--contact-fill F] [--jbar] [--flip A] [--no-save]
+        [--contact-fill F] [--jbar [affine]] [--flip A] [--no-save]
 
 BODY: rigid | elastic | foam (the tasks' floating foam, 400 kg/m³, E = 4.75 kPa). LIQUID: std (the catalogue's
 water) | task (the tasks' water, sound speed 4 m/s) | nt (the same water without tension: p = max(0,
@@ -13,7 +13,7 @@ surface (dropped); otherwise at Archimedes' depth (water filled around it), or -
 --substep-factor and --bulk-factor scale the stable substep count and the water's bulk modulus (the knobs
 that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
---jbar and --flip A: the Scene's J-bar and AFLIP share (engine/transfer.py).
+--jbar [affine] and --flip A: the Scene's J-bar (plain or affine) and AFLIP share (engine/transfer.py).
 Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
 particles below that surface (share), both against the 99th percentile of the far field's particle heights
 (`surface mm`, validation.submerged); the cube's centre height (`cube z mm`); and the share of the cube's volume
@@ -51,7 +51,8 @@ def main():
     ap.add_argument("--density", type=float, default=500.0, help="the cube's density (kg/m³)")
     ap.add_argument("--every", type=float, default=0.1, help="print every this many seconds")
     ap.add_argument("--contact-fill", type=float, default=0.97, help="Scene(contact_fill=...), engine/grid.py")
-    ap.add_argument("--jbar", action="store_true", help="Scene(jbar=True), engine/transfer.py")
+    ap.add_argument("--jbar", nargs="?", const="on", choices=["on", "affine"],
+                    help="Scene(jbar=True) (or jbar='affine' with --jbar affine), engine/transfer.py")
     ap.add_argument("--flip", type=float, default=0.0, help="Scene(flip=...), AFLIP, engine/transfer.py")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
@@ -87,7 +88,7 @@ def main():
                     bulk_modulus=M.WATER.bulk_modulus * args.bulk_factor)
     kw = {"contact_fill": args.contact_fill} if "contact_fill" in inspect.signature(fl.Scene).parameters else {}
     if args.jbar:
-        kw["jbar"] = True
+        kw["jbar"] = True if args.jbar == "on" else "affine"
     if args.flip:
         kw["flip"] = args.flip
     rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor

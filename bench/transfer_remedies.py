@@ -1,10 +1,12 @@
 """The transfer's numerical dissipation and one remedy for it, AFLIP, measured against APIC (issue: physics fidelity).
 
-    python bench/transfer_remedies.py [--variants 0 0.9 0.97 0.99 jbar jbar+0.99] [--quick]
+    python bench/transfer_remedies.py [--variants 0 0.9 0.97 0.99 jbar jbar+0.99 jbar-affine] [--quick [--cost]]
+                                      [--out FILE]
 
 Writes bench/results/transfer_remedies_cpu.txt (about 25 min on two cores). For each variant: a FLIP share α (0 is
 APIC, the engine's default; α > 0 is AFLIP, Fei et al. 2021), `jbar` (the liquids' J averaged through the grid before
-each substep, APIC), or `jbar+α` (both); engine/transfer.py has the formulas. In float32 on the CPU at the stable
+each substep, APIC), `jbar-affine` (the same with an affine fit of J at each node), or `jbar+α` (both);
+engine/transfer.py has the formulas. In float32 on the CPU at the stable
 substep count:
 - the inviscid cellular vortex's decay rate over 50 ms at 16, 24 and 32 cells per 10 cm (Navier–Stokes: 0) and its
   observed order p = ln(r₁/r₂)/ln(Δx₁/Δx₂) (apps/vortex.py);
@@ -32,10 +34,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def parse(variant: str):
-    """(flip, jbar) of a variant name: "0.99", "jbar", "jbar+0.99"."""
-    jbar = variant.startswith("jbar")
-    rest = variant[len("jbar"):].lstrip("+") if jbar else variant
-    return (float(rest) if rest else 0.0), jbar
+    """(flip, jbar) of a variant name: "0.99", "jbar", "jbar+0.99", "jbar-affine", "jbar-affine+0.99"."""
+    for name, jbar in (("jbar-affine", "affine"), ("jbar", True)):
+        if variant.startswith(name):
+            rest = variant[len(name):].lstrip("+")
+            return (float(rest) if rest else 0.0), jbar
+    return float(variant), False
 
 
 def inviscid(res: int, duration: float, flip: float, jbar: bool = False):
@@ -91,6 +95,8 @@ def main():
     ap.add_argument("--variants", nargs="+", default=["0", "0.9", "0.97", "0.99", "jbar", "jbar+0.99"],
                     help="FLIP shares (0: APIC), jbar, jbar+share")
     ap.add_argument("--quick", action="store_true", help="16 and 24 cells only, no cube at 24, no cost probe")
+    ap.add_argument("--cost", action="store_true", help="the cost probe also with --quick")
+    ap.add_argument("--out", default=None, help="results file (default bench/results/transfer_remedies_cpu.txt)")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import fluidlab_core as fl
@@ -152,17 +158,18 @@ def main():
         out(f"{a:>9} {rest['slope_ratio']:>11.3f} {rest['surface_spread'] * 1e3:>8.2f} {z25:>10.3f} "
             f"{ring['decay_rate']:>9.2f} {ring['first_swing']:>8.0f} " + " ".join(f"{x:>11.2f}" for x in rises))
 
-    if not args.quick:
+    if not args.quick or args.cost:
         out()
         out("4. Cost: 3-D dam break, 32 cells, ms per substep (median of 3 alternating rounds) and ratio to APIC")
-        probe = ["0"] + [a for a in ("0.99", "jbar", "jbar+0.99") if a in args.variants]
+        probe = ["0"] + [a for a in args.variants if a not in ("0", "0.9", "0.97")]
         ms, n = cost(probe)
         for a in probe:
             out(f"{a:>9} {ms[a]:>8.2f} ms  x{ms[a] / ms['0']:.2f}   ({n} particles)")
     out()
     out(f"total {time.time() - t0:.0f} s")
     if not args.no_save:
-        path = Path(__file__).resolve().parent / "results" / "transfer_remedies_cpu.txt"
+        default = Path(__file__).resolve().parent / "results" / "transfer_remedies_cpu.txt"
+        path = Path(args.out) if args.out else default
         path.write_text("\n".join(lines) + "\n")
         print(f"wrote {path}")
 

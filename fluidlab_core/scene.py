@@ -87,12 +87,18 @@ class Scene:
     def __init__(self, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0), grid_res: int = 64, dt: float = 2e-3,
                  substeps: int = 10, gravity=(0.0, 0.0, -9.81), particle_spacing: float | None = None,
                  max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0,
-                 contact_fill: float = 0.97, flip: float = 0.0, jbar: bool = False):
+                 contact_fill: float = 0.97, flip: float = 0.0, jbar: bool | str = False):
         """lower/upper: the domain walls (m). grid_res: cells along the longest side. dt: one `step` (s),
         split into `substeps`. particle_spacing: sampling lattice (m, default Δx/2). max_speed: fastest
         expected speed for the stability check (m/s). wall_friction: Coulomb coefficient of the domain walls.
         seed: seeds particle jitter. contact_fill: the volume fill of a grid node at which fluids and solids
-        share a velocity there (engine/grid.py: two velocity fields; in (0, 2], default 0.97)."""
+        share a velocity there (engine/grid.py: two velocity fields; in (0, 2], default 0.97). flip: the share
+        α in [0, 1) of FLIP in the liquids' velocity update (AFLIP, Fei et al. 2021): 0 is APIC (the default and
+        the paper's); α > 0 gives back α of each liquid particle's own velocity detail, which APIC smooths away at
+        every transfer (less numerical viscosity). jbar: the liquids' J averaged through the grid before each
+        substep (J-bar; "affine": fitted affinely at each node, exact for a linear J where the liquid ends). Both
+        are forward only (no gradients) and change how floating bodies sit (docs/engine.md); engine/transfer.py
+        has the formulas."""
         self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
         if not np.all(self.lower < self.upper):
             raise ValueError(f"the domain needs lower < upper on every axis, got lower={tuple(self.lower)}, "
@@ -111,7 +117,9 @@ class Scene:
         if not (0.0 <= flip < 1.0):
             raise ValueError(f"flip must be in [0, 1) (the FLIP share of the liquids' velocity update), got {flip!r}")
         self.flip = float(flip)
-        self.jbar = bool(jbar)
+        if jbar not in (False, True, "affine"):
+            raise ValueError(f"jbar must be False, True or 'affine', got {jbar!r}")
+        self.jbar = jbar
         self.grid_res = int(grid_res)
         self.dx = float((self.upper - self.lower).max() / self.grid_res)
         self.dt = float(dt)
@@ -561,8 +569,8 @@ class Scene:
             raise ValueError(f"flip={self.flip} (AFLIP) has a forward only: the differentiable solver transfers by "
                              "APIC; build with requires_grad=False, or make the Scene with flip=0 for gradients")
         if requires_grad and self.jbar:
-            raise ValueError("jbar=True (the liquids' J averaged through the grid) has a forward only; build with "
-                             "requires_grad=False, or make the Scene with jbar=False for gradients")
+            raise ValueError(f"jbar={self.jbar!r} (the liquids' J averaged through the grid) has a forward only; "
+                             "build with requires_grad=False, or make the Scene with jbar=False for gradients")
         if self.gas is not None and not self.bodies:
             return self._build_gas(requires_grad)
         from fluidlab_core.engine.model import Model, ModelSpec

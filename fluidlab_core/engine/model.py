@@ -106,6 +106,7 @@ class Model:
         self.flip = float(spec.flip)
         self.has_flip = self.flip > 0.0 and len(self.fluid_models) > 0
         self.has_jbar = bool(spec.jbar) and len(self.fluid_models) > 0
+        self.jbar_affine = self.has_jbar and spec.jbar == "affine"  # the nodes fit J affinely (transfer.py)
         # the contact test's share of each node's stencil beyond the walls or inside statics (grid.solid_share_of),
         # constant: filled once in upload()
         self.solid_share = ti.field(real, shape=self.grid_shape) if self.two_fields else None

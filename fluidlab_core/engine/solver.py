@@ -77,6 +77,10 @@ class Solver:
         self.has_jbar = model.has_jbar
         if self.has_jbar:  # J-bar (transfer.py): the liquids' mass-weighted J at the nodes
             self.grid_J = ti.field(real, shape=model.grid_shape)  # J_i
+            if model.jbar_affine:  # weighted least-squares fit J ≈ c₀ + c·(x − x_i)/Δx at each node
+                self.grid_A = ti.Matrix.field(4, 4, real, shape=model.grid_shape)  # Σ w m φ φᵀ
+                self.grid_r = ti.Vector.field(4, real, shape=model.grid_shape)  # Σ w m J φ
+                self.grid_c = ti.Vector.field(4, real, shape=model.grid_shape)  # the fit (c₀, c)
             if self.private:
                 self.copies_mJ = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m J (kg)
                 self.copies_mliq = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m (kg)
@@ -103,7 +107,35 @@ class Solver:
         state's slots s_in and s_out; with `keep`, the differentiable solver's stores are filled. Each solver's
         kernel takes only the arguments it needs: at small sizes Taichi's handling of a launch's arguments (an
         array, a template) costs as much as a tenth of the substep."""
-        if ti.static(self.has_jbar):  # J-bar: the liquids' J averaged at the nodes, read back in P2G
+        if ti.static(self.model.jbar_affine):  # affine J-bar: exact for J linear in x, also where the liquid ends
+            for I in ti.grouped(self.grid_J):
+                self.grid_A[I] = ti.Matrix.zero(float, 4, 4)
+                self.grid_r[I] = ti.Vector.zero(float, 4)
+            for p in range(self.n_particles):
+                active = True
+                if ti.static(self.model.has_emitters):
+                    active = self.model.emitters.active(state, s_in, p)
+                if active and transfer.is_fluid(self.model, p):
+                    base, fx, w = grid.stencil(self.model, state.x[s_in, p])
+                    mp = self.model.mass[p]
+                    J = state.F[s_in, p].determinant()
+                    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                        d = fx - offset  # (x_p − x_i)/Δx
+                        phi = ti.Vector([1.0, d[0], d[1], d[2]])
+                        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2] * mp
+                        self.grid_A[base + offset] += weight * phi.outer_product(phi)
+                        self.grid_r[base + offset] += weight * J * phi
+            for I in ti.grouped(self.grid_J):
+                A = self.grid_A[I]
+                cfit = ti.Vector([1.0, 0.0, 0.0, 0.0])
+                if A[0, 0] > self.model.mass_floor:
+                    cfit = ti.Vector([self.grid_r[I][0] / A[0, 0], 0.0, 0.0, 0.0])
+                    A64 = A.cast(ti.f64) / ti.cast(A[0, 0], ti.f64)  # solved in float64, scaled to A₀₀ = 1
+                    if ti.abs(A64.determinant()) > 1e-6:
+                        cfit = ti.cast(A64.inverse() @ (self.grid_r[I].cast(ti.f64) / ti.cast(A[0, 0], ti.f64)),
+                                       self.real)
+                self.grid_c[I] = cfit
+        elif ti.static(self.has_jbar):  # J-bar: the liquids' J averaged at the nodes, read back in P2G
             if ti.static(self.private):
                 ti.loop_config(block_dim=1)
                 for c in range(self.copies):
@@ -302,7 +334,17 @@ class Solver:
         if ti.static(self.has_jbar):
             if active and transfer.is_fluid(self.model, p):
                 J = F_in.determinant()
-                F_in = ti.pow(transfer.gather_scalar(self.model, self.grid_J, state.x[s_in, p]) / J, 1.0 / 3.0) * F_in
+                J_bar = 0.0
+                if ti.static(self.model.jbar_affine):
+                    base, fx, w = grid.stencil(self.model, state.x[s_in, p])
+                    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                        d = fx - offset
+                        cfit = self.grid_c[base + offset]
+                        J_bar += w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2] * (
+                            cfit[0] + cfit[1] * d[0] + cfit[2] * d[1] + cfit[3] * d[2])
+                else:
+                    J_bar = transfer.gather_scalar(self.model, self.grid_J, state.x[s_in, p])
+                F_in = ti.pow(J_bar / J, 1.0 / 3.0) * F_in
         Fp = ti.Matrix.identity(float, 3)
         tau = ti.Matrix.zero(float, 3, 3)
         if active:

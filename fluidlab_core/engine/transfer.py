@@ -24,6 +24,11 @@ particles' J = det F is averaged through the grid and each liquid particle's F r
 which removes the particle-to-particle pattern of J that a divergence-free flow otherwise builds up (J is
 integrated from the grid's divergence, tr C, which depends on where a particle sits between the nodes; docs/engine.md,
 "the vortex's decay and the liquid's J") and keeps the patterns the grid resolves.
+`jbar="affine"` fits J at each node by weighted least squares, J ≈ c₀ + c·(x − x_i)/Δx with the normal equations
+Σ_p w_ip m_p φ φᵀ c = Σ_p w_ip m_p J_p φ, φ = (1, (x_p − x_i)/Δx) (solved in float64; a node whose particles do not
+span the three axes keeps the plain mean), and reads J̄_p = Σ_i w_ip (c₀ + c·(x_p − x_i)/Δx): exact for a J linear in
+x, also where the liquid ends (the plain mean is not, which bends the hydrostatic pressure); Σ m J is kept by the
+fit's first equation. Its scatter is atomic on every backend for now (20 numbers a node; slower on the CPU).
 
 Scatter targets: on the CPU each thread scatters its share of particles into a grid copy of its own
 (`private`: plain read-modify-writes, no atomic float adds, which are compare-and-swap loops on x64 and cost
