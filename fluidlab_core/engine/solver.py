@@ -81,7 +81,7 @@ class Solver:
                 self.grid_A = ti.Matrix.field(4, 4, real, shape=model.grid_shape)  # Σ w m φ φᵀ
                 self.grid_r = ti.Vector.field(4, real, shape=model.grid_shape)  # Σ w m J φ
                 self.grid_c = ti.Vector.field(4, real, shape=model.grid_shape)  # the fit (c₀, c)
-            if self.private:
+            elif self.private:  # the plain mean's sums
                 self.copies_mJ = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m J (kg)
                 self.copies_mliq = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))  # Σ w m (kg)
             else:
