@@ -8,4 +8,3 @@ for k in range(n):
     m = (t >= k * T - 1e-12) & (t < (k + 1) * T - 1e-12)
     W = (tau[m] * w[m, None]).sum(axis=0) * dt
     print(f"  cycle {k}: " + "  ".join(f"{x*1e3:+.3f}" for x in W))
-# the torque's mean over half-cycles (going out / coming back) at equal angle bins
