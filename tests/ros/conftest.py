@@ -25,6 +25,7 @@ pytest.importorskip("fluidlab_msgs", reason="fluidlab_msgs is not built (pip ins
 
 from rclpy.action import ActionClient  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -119,6 +120,18 @@ def start_monitor(env, tmp_path: Path, topic: str, name: str = "monitor") -> tup
     return proc, out
 
 
+# A service's responses go to every client of that service, and each client's reader discards those that are
+# not its own only when it takes them: with rclpy's default QoS (keep last 10) a client that does not take for a
+# moment loses its own responses once ten for any client arrive after them. Measured here (tests/ros/
+# test_sim_node.py's burst, slowed to one goal per 50 ms from the client's executor thread, which then takes
+# nothing): of 20 goals from four Execute clients, the first 10 were never answered, the last 10 were. A CI run
+# under load lost one of 40 that way. The tests' clients keep 1000 responses, as a lab's many-client tool should
+# (docs/ros.md).
+DEEP = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                  durability=DurabilityPolicy.VOLATILE)
+ACTION_QOS = {"goal_service_qos_profile": DEEP, "result_service_qos_profile": DEEP,
+              "cancel_service_qos_profile": DEEP}
+
 # wait_for_server / wait_for_service return once the client has discovered the server; the server may not yet
 # have discovered the client's response reader, and Fast DDS then drops the first response (seen here: a goal
 # never acknowledged). A second of settling after discovery avoids it.
@@ -151,13 +164,13 @@ class Client:
         return future.result()
 
     def action(self, kind, name: str, timeout: float = 60.0):
-        client = ActionClient(self.node, kind, name)
+        client = ActionClient(self.node, kind, name, **ACTION_QOS)
         assert client.wait_for_server(timeout_sec=timeout), f"action server {name} did not appear in {timeout} s"
         time.sleep(SETTLE)
         return client
 
     def service(self, kind, name: str, timeout: float = 60.0):
-        client = self.node.create_client(kind, name)
+        client = self.node.create_client(kind, name, qos_profile=DEEP)
         assert client.wait_for_service(timeout_sec=timeout), f"service {name} did not appear in {timeout} s"
         time.sleep(SETTLE)
         return client
@@ -167,7 +180,7 @@ class Client:
         after sending the request, so a response that the executor thread takes in between is dropped ("Ignoring
         unexpected goal response", seen once in a full local run: a goal never acknowledged). Sent from the
         executor's own thread, nothing can come between."""
-        return self.wait(self.executor.create_task(fn, *args, **kwargs), 10, f"the executor to run {fn.__name__}")
+        return self.wait(self.executor.create_task(fn, *args, **kwargs), 30, f"the executor to run {fn.__name__}")
 
     def call(self, client, request, timeout: float = 30.0):
         return self.wait(self.in_executor(client.call_async, request), timeout, f"a response from {client.srv_name}")

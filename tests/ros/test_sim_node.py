@@ -197,7 +197,8 @@ def test_goals_sent_together_one_of_each_kind_runs_and_rejected_goals_send_nothi
                                                                                     trajectories):
     """20 Execute and 20 Optimise goals from four clients of each kind, sent in one burst: exactly one of each kind
     is accepted (the node checks and claims under a lock; before, two goals checked together could both pass),
-    and the commands the monitor sees are those of the one accepted plan, no more."""
+    every goal is answered (each client keeps more responses than the burst has), and the commands the monitor
+    sees are those of the one accepted plan, no more."""
     node = start_node(ros_env, tmp_path, f"trajectory_folder:={trajectories}", "fluid_twin:=false")
     monitor, out = start_monitor(ros_env, tmp_path, "/sim_node/commands")
     try:
@@ -208,11 +209,19 @@ def test_goals_sent_together_one_of_each_kind_runs_and_rejected_goals_send_nothi
                                  name="ros_burst")
 
         def burst():
-            return [c.send_goal_async(g) for _ in range(5) for c, g in
+            sent = [c.send_goal_async(g) for _ in range(5) for c, g in
                     [*((e, execute) for e in executors), *((o, optimise) for o in optimisers)]]
+            # the client takes nothing for a second while the node answers: every client's reader then holds
+            # the responses to all 20 goals of its action, not only its own 5 (with rclpy's default keep-last-10
+            # QoS the first 10 were lost; conftest.DEEP)
+            time.sleep(1.0)
+            return sent
 
         futures = client.in_executor(burst)
-        handles = [client.wait(f, 60, "goal acceptance") for f in futures]
+        try:
+            handles = [client.wait(f, 60, f"goal acceptance (goal {i} of 40)") for i, f in enumerate(futures)]
+        except AssertionError as err:
+            raise AssertionError(f"{err}; answered: {[f.done() for f in futures]}\n{node.text()}") from None
         kinds = [k for _ in range(5) for k in ["execute"] * 4 + ["optimise"] * 4]  # the order burst() sent them in
         accepted = [k for k, h in zip(kinds, handles) if h.accepted]
         assert sorted(accepted) == ["execute", "optimise"], accepted
