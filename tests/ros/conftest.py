@@ -179,7 +179,8 @@ class Client:
         """fn(*args, **kwargs) run by the executor's thread. rclpy's ActionClient files a request's future only
         after sending the request, so a response that the executor thread takes in between is dropped ("Ignoring
         unexpected goal response", seen once in a full local run: a goal never acknowledged). Sent from the
-        executor's own thread, nothing can come between."""
+        executor's own thread, nothing can come between. The wait allows 30 s (it was 10): it includes fn's own
+        time, and the burst test's fn sends 40 goals and then holds the thread for 1 s (about 1.2 s unloaded)."""
         return self.wait(self.executor.create_task(fn, *args, **kwargs), 30, f"the executor to run {fn.__name__}")
 
     def call(self, client, request, timeout: float = 30.0):
