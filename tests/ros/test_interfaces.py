@@ -95,16 +95,22 @@ def test_actions_and_services_have_their_parts():
 # --- (b) round trips between two processes ---------------------------------------------------------------------------
 SERVER = textwrap.dedent('''
     """Test server: ~/list_trajectories (ListTrajectories) and ~/optimise (Optimise) with canned answers."""
+    import faulthandler
+    import signal
+    import threading
     import time
 
     import rclpy
     from rclpy.action import ActionServer
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
 
     from fluidlab_msgs.action import Optimise
     from fluidlab_msgs.msg import TrajectoryInfo
     from fluidlab_msgs.srv import ListTrajectories
+
+    STOP = threading.Event()  # set by SIGINT
 
     SAVED = [
         TrajectoryInfo(name="mix_dp", task="Mixing", method="dp", seed=0, steps=150, dt=0.02, duration=3.0,
@@ -130,7 +136,7 @@ SERVER = textwrap.dedent('''
             # feedback reader is lost (under load the first of the three was, once). Wait for that reader.
             deadline = time.monotonic() + 30.0
             topic = "/fluidlab_msgs_test_server/optimise/_action/feedback"
-            while self.count_subscribers(topic) < 1 and time.monotonic() < deadline:
+            while self.count_subscribers(topic) < 1 and time.monotonic() < deadline and not STOP.is_set():
                 time.sleep(0.01)
             best = float("inf")
             for iteration in range(3):
@@ -145,14 +151,22 @@ SERVER = textwrap.dedent('''
 
 
     def main():
-        rclpy.init()
+        faulthandler.register(signal.SIGUSR1, all_threads=True)  # the fixture asks for a stack dump if it hangs
+        # SIGINT is handled here, as sim_node does, not by rclpy: rclpy's handler shuts the context down from its
+        # own thread, and when that lands between the executor's context check and its next wait set the spin
+        # raises RCLError ("failed to initialize wait set: the given context is not valid"; ros2/rclpy#398 and
+        # ros2cli#854). Seen here once in 15 runs with a colcon build in the other pytest worker: exit code 1.
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGINT, lambda *_: STOP.set())
         node = Server()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
         print("READY", flush=True)
         try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
+            while not STOP.is_set():
+                executor.spin_once(timeout_sec=0.05)
         finally:
+            executor.shutdown()
             node.destroy_node()
             rclpy.try_shutdown()
 
@@ -209,9 +223,11 @@ def server(tmp_path_factory):
         try:
             proc.wait(timeout=STOP_TIMEOUT)
         except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGUSR1)  # faulthandler: where each thread is, on stderr
+            time.sleep(1.0)
             proc.kill()  # only when SIGINT did not stop it; leaves /dev/shm/fastrtps_* behind
-            proc.wait()
-            pytest.fail(f"test server ignored SIGINT for {STOP_TIMEOUT} s and was killed")
+            _, err = proc.communicate()
+            pytest.fail(f"test server ignored SIGINT for {STOP_TIMEOUT} s and was killed; its stderr:\n{err}")
     err = proc.stderr.read()
     proc.stdout.close()
     proc.stderr.close()
