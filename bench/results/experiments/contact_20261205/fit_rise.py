@@ -9,7 +9,11 @@ linear resistance c (N s/m). Steady quadratic drag ½ ρ_w C_d a² v² (C_d 1.05
 so a c well above zero is a resistance the liquid should not have (the more so as the body has moved too little
 for a wake to form).
 
-    python fit_rise.py rise800start_body.npy [more logs] [--from 0.004] [--density 800]
+It also prints each log's lag behind the potential-flow start: the time (v_ideal − v) / a₀ by which the body's
+velocity trails v_ideal = a₀ t, a₀ = F_net / (M + C_a ρ_w a³) with the potential flow's C_a (--ca, 0.71 for the
+mid-depth start, bench/results/added_mass.txt), at 0.01, 0.05 and 0.1 s.
+
+    python fit_rise.py rise800start_body.npy [more logs] [--from 0.004] [--density 800] [--ca 0.71]
 """
 import argparse
 
@@ -23,12 +27,15 @@ def main():
     ap.add_argument("logs", nargs="+")
     ap.add_argument("--from", dest="t0", type=float, default=0.004, help="first time fitted (s)")
     ap.add_argument("--density", type=float, default=800.0)
+    ap.add_argument("--ca", type=float, default=0.71, help="the potential flow's added mass coefficient")
     args = ap.parse_args()
     M = args.density * SIDE ** 3
     f_net = (RHO_W - args.density) * G * SIDE ** 3
     print(f"# heave equation fitted to dv/dt = A - B v (t >= {args.t0} s); C_a = (F_net / A - M) / (rho_w a^3), "
           f"c = B (M + m_a)")
-    print("# log                                   substeps  v max (m/s)   A (m/s2)   B (1/s)    C_a     c (N s/m)")
+    a0 = f_net / (M + args.ca * RHO_W * SIDE ** 3)
+    print("# log                                   substeps  v max (m/s)   A (m/s2)   B (1/s)    C_a     c (N s/m)"
+          f"   lag (s) at 0.01, 0.05, 0.1 s behind a0 = {a0:.3f} m/s2")
     for path in args.logs:
         b = np.load(path)
         t, v = b[:, 0], b[:, 6]
@@ -40,7 +47,9 @@ def main():
         A, B = intercept, -slope
         mass = f_net / A
         c_a = (mass - M) / (RHO_W * SIDE ** 3)
-        print(f"  {path:<38} {int(keep.sum()):8d}  {v.max():10.4f}   {A:8.3f}   {B:8.3f}   {c_a:6.3f}   {B * mass:8.4f}")
+        lags = [(a0 * t[i] - v[i]) / a0 for i in (int(np.argmin(abs(t - T))) for T in (0.01, 0.05, 0.1))]
+        print(f"  {path:<38} {int(keep.sum()):8d}  {v.max():10.4f}   {A:8.3f}   {B:8.3f}   {c_a:6.3f}   {B * mass:8.4f}"
+              f"   {lags[0]:.4f} {lags[1]:.4f} {lags[2]:.4f}")
 
 
 if __name__ == "__main__":
