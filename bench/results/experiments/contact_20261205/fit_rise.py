@@ -1,5 +1,6 @@
 """Fit the heave equation to a submerged cube's rise from the experiment's body logs (FL_LOGBODY=1 ... --dump X.npz
-writes X_body.npy: per substep t, ω, v, τ, F, c).
+writes X_body.npy: per substep t, ω, v, τ, F, c; v as the rigid projection leaves it, before the substep's push F,
+so the body's velocity at the end of the substep is v + F Δt / M).
 
     (M + m_a) dv/dt = F_net − c v      (F_net = (ρ_w − ρ) g a³, the net buoyancy of the fully submerged cube)
 
@@ -38,7 +39,8 @@ def main():
           f"   lag (s) at 0.01, 0.05, 0.1 s behind a0 = {a0:.3f} m/s2")
     for path in args.logs:
         b = np.load(path)
-        t, v = b[:, 0], b[:, 6]
+        t = b[:, 0]
+        v = b[:, 6] + b[:, 12] * (t[1] - t[0]) / M  # after the substep's push
         dvdt = np.diff(v) / np.diff(t)
         vm = 0.5 * (v[1:] + v[:-1])
         tm = 0.5 * (t[1:] + t[:-1])
