@@ -111,18 +111,20 @@ def added_mass_coefficient(solid: np.ndarray, h: float, free_top: bool, dirichle
     return energy / volume, it[0], time.time() - t0
 
 
+def cell_centres(h, extent):
+    """X, Y, Z of the centres of the cells (side h) over [0, extent] (m)."""
+    return np.meshgrid(*[(np.arange(int(round(e / h))) + 0.5) * h for e in extent], indexing="ij")
+
+
 def box_cells(lo, hi, h, extent):
     """Bool grid of cells (side h) over [0, extent] with centres inside the box [lo, hi] (m)."""
-    n = [int(round(e / h)) for e in extent]
-    centres = [(np.arange(k) + 0.5) * h for k in n]
-    X, Y, Z = np.meshgrid(*centres, indexing="ij")
+    X, Y, Z = cell_centres(h, extent)
     return (X > lo[0]) & (X < hi[0]) & (Y > lo[1]) & (Y < hi[1]) & (Z > lo[2]) & (Z < hi[2])
 
 
 def sphere_cells(c, r, h, extent):
-    n = [int(round(e / h)) for e in extent]
-    centres = [(np.arange(k) + 0.5) * h for k in n]
-    X, Y, Z = np.meshgrid(*centres, indexing="ij")
+    """Bool grid of cells (side h) over [0, extent] with centres inside the sphere of centre c, radius r (m)."""
+    X, Y, Z = cell_centres(h, extent)
     return (X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2 < r * r
 
 
