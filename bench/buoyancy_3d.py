@@ -4,7 +4,7 @@ surface every 0.1 s. Archimedes: ρ/ρ_w (0.50 by default, 0.40 for the foam).
 
     python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
         [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3]
-        [--contact-fill F] [--jbar [affine]] [--flip A] [--no-save]
+        [--contact-fill F] [--jbar [affine]] [--flip A] [--pressure projection] [--no-save]
 
 BODY: rigid | elastic | foam (the tasks' floating foam, 400 kg/m³, E = 4.75 kPa). LIQUID: std (the catalogue's
 water) | task (the tasks' water, sound speed 4 m/s) | nt (the same water without tension: p = max(0,
@@ -14,6 +14,8 @@ surface (dropped); otherwise at Archimedes' depth (water filled around it), or -
 that separate the transfers' dissipation from the sound waves', docs/engine.md); --body-bulk-factor scales the
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
 --jbar [affine] and --flip A: the Scene's J-bar (plain or affine) and AFLIP share (engine/transfer.py).
+--pressure projection: the liquid's pressure by a projection solved with the body's motion (engine/projection.py;
+the substep count then comes from the flow's CFL).
 Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
 particles below that surface (share), both against the 99th percentile of the far field's particle heights
 (`surface mm`, validation.submerged); the cube's centre height (`cube z mm`); and the share of the cube's volume
@@ -53,7 +55,10 @@ def main():
     ap.add_argument("--contact-fill", type=float, default=0.97, help="Scene(contact_fill=...), engine/grid.py")
     ap.add_argument("--jbar", nargs="?", const="on", choices=["on", "affine"],
                     help="Scene(jbar=True) (or jbar='affine' with --jbar affine), engine/transfer.py")
-    ap.add_argument("--flip", type=float, default=0.0, help="Scene(flip=...), AFLIP, engine/transfer.py")
+    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...), AFLIP, engine/transfer.py")
+    ap.add_argument("--pressure", choices=["state", "projection"], default="state",
+                    help="Scene(pressure=...): the liquid's equation of state or the projection with the body "
+                         "(engine/projection.py)")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
@@ -89,8 +94,10 @@ def main():
     kw = {"contact_fill": args.contact_fill} if "contact_fill" in inspect.signature(fl.Scene).parameters else {}
     if args.jbar:
         kw["jbar"] = True if args.jbar == "on" else "affine"
-    if args.flip:
+    if args.flip is not None:
         kw["flip"] = args.flip
+    if args.pressure != "state":
+        kw["pressure"] = args.pressure
     rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor
     body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
         common.FLOAT_FOAM if args.body == "foam" else \
@@ -117,7 +124,7 @@ def main():
         f"at Archimedes' depth + {args.lift * 1e3:g} mm"
     fields = f"two velocity fields (contact_fill {sim.model.contact_fill:g})" \
         if getattr(sim.model, "two_fields", False) else "one velocity field"
-    fields += "".join(f", {k} {kw[k]}" for k in ("jbar", "flip") if k in kw)
+    fields += "".join(f", {k} {kw[k]}" for k in ("jbar", "flip", "pressure") if k in kw)
     text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
                       f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "

@@ -87,7 +87,8 @@ class Scene:
     def __init__(self, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0), grid_res: int = 64, dt: float = 2e-3,
                  substeps: int = 10, gravity=(0.0, 0.0, -9.81), particle_spacing: float | None = None,
                  max_speed: float | None = None, wall_friction: float = 0.0, seed: int = 0,
-                 contact_fill: float = 0.97, flip: float = 0.0, jbar: bool | str = False):
+                 contact_fill: float = 0.97, flip: float | None = None, jbar: bool | str = False,
+                 pressure: str = "state"):
         """lower/upper: the domain walls (m). grid_res: cells along the longest side. dt: one `step` (s),
         split into `substeps`. particle_spacing: sampling lattice (m, default Δx/2). max_speed: fastest
         expected speed for the stability check (m/s). wall_friction: Coulomb coefficient of the domain walls.
@@ -98,7 +99,13 @@ class Scene:
         every transfer (less numerical viscosity). jbar: the liquids' J averaged through the grid before each
         substep (J-bar; "affine": fitted affinely at each node, exact for a linear J where the liquid ends). Both
         are forward only (no gradients) and change how floating bodies sit (docs/engine.md); engine/transfer.py
-        has the formulas."""
+        has the formulas. pressure: the liquids' pressure, "state" (the default: weakly compressible, from each
+        particle's volume change by its equation of state) or "projection" (incompressible: the pressure from a
+        Poisson solve on the grid, with one rigid body's velocity as an unknown of the same solve, so that a body
+        floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids of one
+        density and at most one rigid body, without tools, statics, emitters, gas or other solids for now; its
+        flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
+        otherwise."""
         self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
         if not np.all(self.lower < self.upper):
             raise ValueError(f"the domain needs lower < upper on every axis, got lower={tuple(self.lower)}, "
@@ -114,6 +121,12 @@ class Scene:
         if not (0.0 < contact_fill <= 2.0):
             raise ValueError(f"contact_fill must be in (0, 2] (a node's volume fill), got {contact_fill!r}")
         self.contact_fill = float(contact_fill)
+        if pressure not in ("state", "projection"):
+            raise ValueError(f"pressure must be 'state' (equation of state) or 'projection' (engine/projection.py), "
+                             f"got {pressure!r}")
+        self.pressure = pressure
+        if flip is None:
+            flip = 0.99 if pressure == "projection" else 0.0
         if not (0.0 <= flip < 1.0):
             raise ValueError(f"flip must be in [0, 1) (the FLIP share of the liquids' velocity update), got {flip!r}")
         self.flip = float(flip)
@@ -491,6 +504,10 @@ class Scene:
             height = float(self.upper[2] - self.lower[2])
             v_tools = max((t.max_speed for t in self.tools), default=0.0)
             v_max = max(v0, v_tools) + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
+        if self.pressure == "projection":
+            # the projection holds the liquid incompressible and a rigid body carries no stress: neither's sound
+            # speed limits the substep, the flow's CFL does
+            mats = {k: m for k, m in mats.items() if not (m.is_liquid or isinstance(m, M.Rigid))}
         stiffest = max(mats.values(), key=lambda m: m.wave_speed(), default=None)
         c = stiffest.wave_speed() if stiffest else 0.0
         limits = {"dx": self.dx, "v_max": v_max, "wave_speed": c,
@@ -565,6 +582,8 @@ class Scene:
         self.check()
         from fluidlab_core import runtime
 
+        if self.pressure == "projection":
+            self._check_projection(requires_grad)
         if requires_grad and self.flip > 0:
             raise ValueError(f"flip={self.flip} (AFLIP) has a forward only: the differentiable solver transfers by "
                              "APIC; build with requires_grad=False, or make the Scene with flip=0 for gradients")
@@ -587,7 +606,7 @@ class Scene:
         spec = ModelSpec(
             lower=self.lower, upper=self.upper, dx=self.dx, dt=self.substep_dt, substeps=self.substeps,
             gravity=self.gravity, wall_friction=self.wall_friction, contact_fill=self.contact_fill,
-            flip=self.flip, jbar=self.jbar,
+            flip=self.flip, jbar=self.jbar, pressure=self.pressure,
             x=np.concatenate([b.points for b in self.bodies]), v=np.concatenate([b.velocity for b in self.bodies]),
             material_index=np.concatenate([np.full(h.count, mats.index(h.material)) for h in handles]),
             body_index=np.concatenate([np.full(h.count, h.body) for h in handles]),
@@ -623,6 +642,37 @@ class Scene:
                 rows = np.concatenate([np.arange(h.start, h.start + h.count) for h in chosen]) if chosen else None
             sim.attach_gas(gas, GasParticleCoupling(gas, model, rows, self.gas.particle_drag))
         return sim
+
+    def _check_projection(self, requires_grad: bool):
+        """Refuse what pressure="projection" does not handle yet, naming it."""
+        why = []
+        if requires_grad:
+            why.append("gradients (it has a forward solver only; build with requires_grad=False)")
+        if self.jbar:
+            why.append("jbar (the projection holds the liquid's volume itself)")
+        if self.tools:
+            why.append(f"tools ({', '.join(t.name for t in self.tools)})")
+        if self.statics:
+            why.append(f"statics ({', '.join(s.name for s in self.statics)}); the domain's walls are handled")
+        if self.emitters:
+            why.append("emitters")
+        if self.gas is not None:
+            why.append("gas")
+        liquids = {b.handle.material.density for b in self.bodies if b.handle.material.is_liquid}
+        others = sorted({b.handle.material.name for b in self.bodies
+                         if not b.handle.material.is_liquid and not isinstance(b.handle.material, M.Rigid)})
+        rigid = [b.handle.name for b in self.bodies if isinstance(b.handle.material, M.Rigid)]
+        if others:
+            why.append(f"solids other than rigid bodies ({', '.join(others)})")
+        if len(rigid) != 1:
+            why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid) or 'none'}); it couples exactly one")
+        if not liquids:
+            why.append("a scene without liquid")
+        elif len(liquids) > 1:
+            why.append(f"liquids of different densities ({', '.join(f'{d:g}' for d in sorted(liquids))} kg/m³)")
+        if why:
+            raise ValueError("pressure='projection' (engine/projection.py) does not handle yet: " + "; ".join(why)
+                             + ". Use pressure='state' for this scene.")
 
     def _build_gas(self, requires_grad: bool):
         """A GasSimulator for a scene with gas and no particles."""

@@ -1,7 +1,7 @@
-"""Solid and coupled validation: buoyancy (Archimedes), momentum exchange, plastic dissipation, the
+"""Solid and coupled validation: a heavy body on the floor under water (floating bodies at Archimedes' depth are
+tests/test_projection.py's), momentum exchange, plastic dissipation, the
 Rayleigh–Taylor instability, and the Magnus effect on a spinning body in water."""
 import numpy as np
-import pytest
 
 import fluidlab_core as fl
 from fluidlab_core import materials as M
@@ -14,41 +14,6 @@ G = 9.81
 
 def _rigid(name, density):
     return M.Rigid(name, density=density)
-
-
-@pytest.mark.xfail(strict=True, reason="issue 19, open: the dropped cube floats at 0.40 of its volume under, "
-                                       "not 0.50 (docs/engine.md, floating bodies)")
-def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
-    """A 4 cm rigid cube of 500 kg/m³ dropped from 1 cm onto 6 cm of water in a closed 12 cm tank (3-D, 16 cells
-    across, float32 on the CPU) floats with the share ρ/ρ_w = 0.50 of its volume under the surface (Archimedes),
-    within ±0.03 (issue 19's tolerance), averaged over 0.4-1.0 s, once the splash has passed.
-
-    It does not yet: expected to fail, strictly, so that a fix shows up as an unexpected pass. Measured
-    2026-11-29 (bench/buoyancy_3d.py rigid std 4 --res 16 --drop 0.01, one thread): 0.403 by volume from
-    0.5 s to 1.5 s, then sinking (0.51 at 3.5 s).
-
-    The share is judged against the surface that the liquid's volume Σ V⁰ J fills the tank to
-    (validation.submerged_by_volume), which at the start of a set-up at Archimedes' depth reads 0.500 exactly.
-    Until 2026-11-29 this test measured the cube's lowest face against the 99th percentile of the far field's
-    particle heights and passed at 0.49 ± 0.05. That surface reads high once the surface has been disturbed:
-    its top particles scatter by about a third of a cell (the far columns' top particle heights have a standard
-    deviation of 2-3 mm at 16 cells), and the percentile sat 2.3 mm (0.06 of the side) above the volume's
-    surface throughout the same run, so the old test passed on that bias.
-
-    Why this window (measured 2026-11-27): what the cube does after about 0.5 s depends on the rounding of the
-    grid sums. With the CPU's per-thread scatter it may start sinking at 0.5 s; with the atomic scatter
-    (FLUIDLAB_SCATTER_COPIES=0) and on CUDA it holds to 2 s. Both agree to 0.002 up to 0.3 s. Measured with
-    both on 2026-11-29: the window's mean is 0.408 with two threads' per-thread scatter (the old measure read
-    0.463), and the atomic scatter fails the bound too, so the strict mark holds until the coupling is fixed. With one velocity
-    field (before engine/grid.py's two) the cube stopped on a cushion of void a cell thick, 0.27 by the old
-    measure."""
-    rho = 500.0
-    r = validation.floating_cube(res=16, density=rho, seconds=1.0, drop=0.01, every=0.05)
-    window = r["times"] > 0.4 - 1e-9
-    share = float(np.mean(r["volume_shares"][window]))
-    report("buoyancy, dropped cube", dx_m=r["dx"], volume_share=share, expected=rho / M.WATER.density,
-           percentile_fraction=float(np.mean(r["fractions"][window])), spread=float(np.ptp(r["volume_shares"][window])))
-    assert abs(share - rho / M.WATER.density) < 0.03
 
 
 def test_heavy_cube_rests_on_the_floor_under_water():

@@ -67,6 +67,7 @@ class ModelSpec:
     contact_fill: float = 0.97  # node volume fill at which fluids and solids share a velocity (grid.py)
     flip: float = 0.0  # FLIP share α of the liquids' velocity update (transfer.py, "AFLIP"); 0: APIC
     jbar: bool = False  # the liquids' J averaged through the grid before each substep (transfer.py, "J-bar")
+    pressure: str = "state"  # the liquids' pressure: "state" (equation of state) or "projection" (projection.py)
 
 
 @ti.data_oriented
@@ -104,7 +105,10 @@ class Model:
         self.contact_fill = float(spec.contact_fill)
         # AFLIP (transfer.py): the liquids' particles keep α of their own velocity's difference from the grid's
         self.flip = float(spec.flip)
-        self.has_flip = self.flip > 0.0 and len(self.fluid_models) > 0
+        # the liquids' pressure by a projection with one rigid body's motion (projection.py); its AFLIP is its own
+        self.projection = spec.pressure == "projection"
+        self.liquid_density = max((m.density for m in spec.materials if m.is_liquid), default=0.0)
+        self.has_flip = self.flip > 0.0 and len(self.fluid_models) > 0 and not self.projection
         self.has_jbar = bool(spec.jbar) and len(self.fluid_models) > 0
         self.jbar_affine = self.has_jbar and spec.jbar == "affine"  # the nodes fit J affinely (transfer.py)
         # the contact test's share of each node's stencil beyond the walls or inside statics (grid.solid_share_of),

@@ -20,8 +20,9 @@ This one-way push does not act back on b; the grid coupling carries the forces.
 Linear and angular momentum of each body are unchanged by the projection, so coupling through the grid
 conserves momentum.
 
-Known limitation (issue 19; docs/engine.md, "Floating bodies in 3-D"): a floating body does not settle at one
-depth. It creeps, and stops anywhere in a band (a 500 kg/m³ cube at 24 cells held still at 0.545 and at 0.671 of
+Known limitation of the default coupling (issue 19; docs/engine.md, "Floating bodies in 3-D"; with
+Scene(pressure="projection"), engine/projection.py, a rigid body floats at Archimedes' depth): a floating body
+does not settle at one depth. It creeps, and stops anywhere in a band (a 500 kg/m³ cube at 24 cells held still at 0.545 and at 0.671 of
 its side below the surface, Archimedes 0.50). The liquid's push at a contact node is shared with the liquid's
 own mass there; the body receives it only as the liquid it presses into compresses the body's bottom layers
 and so builds the pressure gradient (from J above) that holds the body up, a slow and history-dependent route.
@@ -42,6 +43,16 @@ around the body, with the liquid's acceleration (the patch's band mode, 2026-12-
 0.47 of its volume under for 5 s without creeping at 16 cells (0.60 at 24), but a deep start stays deep and an 800 kg/m3 cube sinks through
 its depth at balanced force: what is left is the liquid's pressure around the body, which its J's history sets.
 
+Walls' contact (scenes with `Scene(pressure="projection")`, where a rigid body carries no stress and so cannot be
+held up by the floor's nodes pressing into its particles): after the body's v and ω are known, each body particle
+within its spacing h of a domain wall is a contact point at r = x − c, normal n into the domain, gap
+g = (x − wall)·n − h/2 (the body's surface half a spacing beyond the particle). Projected Gauss–Seidel over the points
+(CONTACT_ITERS sweeps; Catto 2005, "Iterative dynamics with temporal coherence") applies normal impulses λ ≥ 0,
+accumulated per point, so that each point's normal velocity v_n = (v + ω × r)·n is at least
+    −g/Δt (g ≥ 0: close the gap this substep, no further)   or   −β g/Δt (g < 0: push out at β per substep),
+with the effective mass 1/(1/M + (r × n)·I⁻¹(r × n)). Frictionless. Without it a 2000 kg/m³ cube at 16 cells rested
+0.31 Δx into the floor (docs/engine.md, "The walls' contact").
+
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
 projection, as one kernel in a forward pass (`forward`) and as separate kernels, built from the same
@@ -55,6 +66,9 @@ from fluidlab_core.engine import svd as svd3
 
 # The exclusion step is unrolled per body; past this many bodies it is skipped (compile time).
 MAX_EXCLUDING_BODIES = 16
+# The walls' contact (above): Gauss–Seidel sweeps per substep, and the share of an overlap pushed out per substep
+CONTACT_ITERS = 20
+CONTACT_BETA = 0.2
 
 
 @ti.data_oriented
@@ -121,6 +135,13 @@ class RigidProjection:
         self.inertia = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # about c (kg m²)
         self.omega = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # angular velocity (rad/s)
         self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
+        self.wall_contact = bool(getattr(model, "projection", False))  # the walls' contact (module docstring)
+        if self.wall_contact:
+            # the contact points of the body being solved: particle, wall k (0-5: −x, +x, −y, +y, −z, +z), impulse
+            self.contact_p = ti.field(ti.i32, shape=6 * n)
+            self.contact_k = ti.field(ti.i32, shape=6 * n)
+            self.contact_lambda = ti.field(real, shape=6 * n)  # accumulated normal impulse (N s)
+            self.contact_substeps = ti.field(ti.i32, shape=())  # substeps in which some body got an impulse
 
     # --- per body and per particle ------------------------------------------------------------------
     @ti.func
@@ -205,10 +226,65 @@ class RigidProjection:
         state.C[s_out, p] = Cp
         state.F[s_out, p] = Fp
 
-    # --- the forward pass: one kernel -------------------------------------------------------------------
-    @ti.kernel
-    def forward(self, state: ti.template(), s_out: ti.i32):
-        """The whole projection, writing slot s_out (one launch)."""
+    @ti.func
+    def _wall_gap(self, b, p, k, c):
+        """Point p of body b against wall k (0-5: −x, +x, −y, +y, −z, +z): its lever r, the wall's normal n into the
+        domain, and the gap g between the body's surface there (h/2 beyond the particle) and the wall."""
+        r = self.R[b] @ self.rigid.rest_offset[p]
+        x = c + r
+        h = ti.pow(self.model.rest_volume[p], 1.0 / 3.0)
+        d = k // 2
+        side = ti.cast(1 - 2 * (k % 2), float)  # +1 for a lower wall, −1 for an upper one
+        e = ti.Vector([ti.cast(d == 0, float), ti.cast(d == 1, float), ti.cast(d == 2, float)])
+        wall = ti.select(k % 2 == 0, ti.Vector(self.model.lower).dot(e), ti.Vector(self.model.upper).dot(e))
+        g = side * (x.dot(e) - wall) - 0.5 * h
+        return r, side * e, g, h
+
+    @ti.func
+    def _wall_contact(self, b):
+        """Projected Gauss–Seidel on body b's contact with the domain's walls (module docstring); updates
+        momentum[b] and omega[b]. The points within h of a wall are gathered once, then swept CONTACT_ITERS
+        times."""
+        M = self.rigid.body_mass[b]
+        c = self.com_sum[b] / M
+        I_inv = self.inertia[b].inverse()
+        v = self.momentum[b] / M
+        w = self.omega[b]
+        dt = self.model.dt
+        count = 0
+        for p in range(self.model.n_particles):
+            if self.rigid.body[p] == b:
+                for k in range(6):
+                    r0, n0, g0, h0 = self._wall_gap(b, p, k, c)
+                    if g0 < h0:
+                        self.contact_p[count] = p
+                        self.contact_k[count] = k
+                        self.contact_lambda[count] = 0.0
+                        count += 1
+        touched = 0
+        for _ in range(CONTACT_ITERS):
+            for i in range(count):
+                r, n, g, h = self._wall_gap(b, self.contact_p[i], self.contact_k[i], c)
+                target = -g / dt if g >= 0.0 else -CONTACT_BETA * g / dt
+                vn = (v + w.cross(r)).dot(n)
+                rn = r.cross(n)
+                k_eff = 1.0 / M + rn.dot(I_inv @ rn)
+                lam_old = self.contact_lambda[i]
+                lam = ti.max(lam_old + (target - vn) / k_eff, 0.0)
+                dl = lam - lam_old
+                self.contact_lambda[i] = lam
+                v += dl / M * n
+                w += I_inv @ (rn * dl)
+                if lam > 0.0:
+                    touched = 1
+        if touched:  # untouched bodies keep their momentum bit for bit
+            self.momentum[b] = v * M
+            self.omega[b] = w
+            self.contact_substeps[None] += 1
+
+    @ti.func
+    def _pose_and_motion(self):
+        """c, momentum, R, I and ω of every body from x_g and v_g (the top-level loops of `forward` and `prime`)."""
         ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self._clear(b)
@@ -226,6 +302,25 @@ class RigidProjection:
         ti.loop_config(serialize=True)
         for b in range(self.rigid.n_bodies):
             self._omega(b)
+
+    @ti.kernel
+    def prime(self, state: ti.template()):
+        """The bodies' pose and motion (c, momentum, R, I, ω) from slot 0 of the state, without writing it: for the
+        liquid projection (projection.py), whose first substep needs the body's pose before any rigid projection."""
+        for p in range(self.model.n_particles):
+            self.x_g[p] = state.x[0, p]
+            self.v_g[p] = state.v[0, p]
+        self._pose_and_motion()
+
+    # --- the forward pass: one kernel -------------------------------------------------------------------
+    @ti.kernel
+    def forward(self, state: ti.template(), s_out: ti.i32):
+        """The whole projection, writing slot s_out (one launch)."""
+        self._pose_and_motion()
+        if ti.static(self.wall_contact):
+            ti.loop_config(serialize=True)
+            for b in range(self.rigid.n_bodies):
+                self._wall_contact(b)
         for p in range(self.model.n_particles):
             self._write(state, s_out, p)
 

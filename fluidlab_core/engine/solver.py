@@ -18,6 +18,11 @@ writes slot s_out: the fast solver (`FastSolver`) steps a one-slot buffer in pla
 differentiable solver (diff_solver.py, a subclass) writes slot s + 1 from slot s and, with `keep`, stores
 what its backward reads. Each calls it from a kernel of its own: the physics is written once.
 
+With `Scene(pressure="projection")` (projection.py) the fast solver splits the substep in two launches around the
+liquid's pressure solve: P2G and the grid update (the liquid's field with gravity only), the projection, G2P (the
+liquid's particles from the solve's faces), the position correction, the rigid projection and the body's push
+(`FastSolver.projected_substep`).
+
 Solvers hold no state of their own beyond their buffers (the grid, its per-thread copies, the stress and
 rigid-body intermediates): the fast solver steps the StateBuffer passed in, the constants are the Model.
 """
@@ -87,6 +92,9 @@ class Solver:
             else:
                 self.grid_mJ = ti.field(real, shape=model.grid_shape)
                 self.grid_mliq = ti.field(real, shape=model.grid_shape)
+        self.projection = model.projection
+        if self.projection:  # the liquid field's velocity before gravity and the projection (projection.py, AFLIP)
+            self.grid_v0 = ti.Vector.field(3, real, shape=model.grid_shape)
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -158,6 +166,13 @@ class Solver:
                 if ml > self.model.mass_floor:
                     J_node = mJ / ml
                 self.grid_J[I] = J_node
+        self._p2g_and_grid(state, s_in, s_out, keep, twist, host_twist)
+        self._g2p_loop(state, s_in, s_out, keep, emit, host_emit)
+
+    @ti.func
+    def _p2g_and_grid(self, state: ti.template(), s_in, s_out, keep: ti.template(), twist: ti.template(),
+                      host_twist: ti.template()):
+        """The substep's P2G and grid update (two of mpm_substep's parallel loops)."""
         # P2G (and the tools' twists from the host: nothing reads them before the grid update; a serial part of
         # its own would cost a task launch, about 40 µs here)
         if ti.static(self.private):
@@ -200,9 +215,19 @@ class Solver:
                     vol = transfer.reduce_scalar_copies(self.copies_vol, self.copies, I)
                 else:
                     m_f, mv_f, vol = self.grid_m_f[I], self.grid_mv_f[I], self.grid_vol[I]
-                c = grid.in_contact(self.model, I, m, m_f, vol)  # once per node, for both fields
+                c = 0.0
+                if ti.static(not self.projection):  # the projection's liquid never shares the body's field
+                    c = grid.in_contact(self.model, I, m, m_f, vol)  # once per node, for both fields
                 vn = grid.field_velocity(self.model, I, 0, c, m, mv, m_f, mv_f, state, s_in)
-                vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
+                vn_f = ti.Vector.zero(float, 3)
+                if ti.static(self.projection):  # u* (gravity only; the walls come after the projection) and v⁰
+                    self.grid_v0[I] = ti.Vector.zero(float, 3)
+                    if m_f > self.model.mass_floor:
+                        vn_f = mv_f / m_f + self.model.dt * ti.Vector(self.model.gravity)
+                        self.grid_v0[I] = mv_f / m_f
+                    self.grid_vol[I] = vol
+                else:
+                    vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
                 self.grid_m[I] = m
                 self.grid_v[I] = vn
                 self.grid_m_f[I] = m_f
@@ -230,6 +255,11 @@ class Solver:
                 if m_liquid > self.model.mass_floor:
                     v0 = mv0 / m_liquid
                 self.grid_v0[I] = v0
+
+    @ti.func
+    def _g2p_loop(self, state: ti.template(), s_in, s_out, keep: ti.template(), emit: ti.template(),
+                  host_emit: ti.template()):
+        """The substep's G2P (the last of mpm_substep's parallel loops), and the tools' advance."""
         # G2P (and the tools' advance: nothing reads their poses after the grid update, except a nozzle that a
         # tool carries or a tool that keeps particles out, whose particles then read slot s_in: the advance then
         # waits for the end of the loop)
@@ -259,7 +289,10 @@ class Solver:
         new_v, new_C = ti.Vector.zero(float, 3), ti.Matrix.zero(float, 3, 3)
         if ti.static(self.two_fields):
             if transfer.is_fluid(self.model, p):
-                new_v, new_C = transfer.gather(self.model, self.grid_v_f, state.x[s_in, p])
+                if ti.static(self.projection):  # from the projection's faces (a staggered grid)
+                    new_v, new_C = self.proj.gather_faces(self.proj.uf, state.x[s_in, p])
+                else:
+                    new_v, new_C = transfer.gather(self.model, self.grid_v_f, state.x[s_in, p])
             else:
                 new_v, new_C = transfer.gather(self.model, self.grid_v, state.x[s_in, p])
         else:
@@ -269,6 +302,10 @@ class Solver:
             if transfer.is_fluid(self.model, p):
                 new_v += self.model.flip * (state.v[s_in, p] - transfer.gather_velocity(
                     self.model, self.grid_v0, state.x[s_in, p]))
+        if ti.static(self.projection and self.model.flip > 0):  # AFLIP, v⁰ from the pre-gravity faces
+            if transfer.is_fluid(self.model, p):
+                v0, _ = self.proj.gather_faces(self.proj.uf0, state.x[s_in, p])
+                new_v += self.model.flip * (state.v[s_in, p] - v0)
         if ti.static(keep):
             self.store_x_pre[s_in, p], self.store_v_pre[s_in, p] = xp, new_v  # for the backward (g2p_project)
             if ti.static(self.has_rigid):
@@ -349,6 +386,12 @@ class Solver:
         tau = ti.Matrix.zero(float, 3, 3)
         if active:
             Fp, tau = transfer.stress(self.model, p, transfer.trial_strain(self.model, Cp, F_in), Cp)
+        if ti.static(self.projection):
+            if transfer.is_fluid(self.model, p):  # incompressible: the projection gives the pressure
+                Fp = ti.Matrix.identity(float, 3)
+                tau = tau - tau.trace() / 3.0 * ti.Matrix.identity(float, 3)
+            elif self.model.rigid.body[p] >= 0:  # a rigid body carries no stress: the projections hold it
+                tau = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_rigid):
             self.F_model[p] = Fp
         else:
@@ -416,6 +459,33 @@ class Solver:
 class FastSolver(Solver):
     """The forward solver: steps a one-slot StateBuffer in place (`Model.state()`), no gradients."""
 
+    def __init__(self, model, scatter_copies: int = 0):
+        super().__init__(model, scatter_copies)
+        self.proj = None
+        if model.projection:
+            from fluidlab_core.engine.projection import LiquidProjection
+
+            self.proj = LiquidProjection(self)
+
+    @ti.kernel
+    def projection_p2g_kernel(self, state: ti.template()):
+        """P2G and the grid update of a substep with the liquid projection (projection.py)."""
+        self._p2g_and_grid(state, 0, 0, False, 0, False)
+
+    @ti.kernel
+    def projection_g2p_kernel(self, state: ti.template()):
+        """G2P of a substep with the liquid projection, after the projection."""
+        self._g2p_loop(state, 0, 0, False, 0, False)
+
+    def projected_substep(self, state: StateBuffer):
+        """One substep with the liquid's pressure by projection (projection.py's module docstring has the order)."""
+        self.projection_p2g_kernel(state)
+        self.proj.project(state)
+        self.projection_g2p_kernel(state)
+        self.proj.displace()
+        self.rigid.forward(state, 0)
+        self.proj.push(state)
+
     @ti.kernel
     def substep_kernel(self, state: ti.template(), twist: ti.types.ndarray()):
         """One substep in place, with the tools' twists (n_tools, 6) from the host."""
@@ -442,6 +512,9 @@ class FastSolver(Solver):
             counts, times, _ = schedule(model.emitter_specs, *state.emission, on, model.substeps, model.dt)
             twist = control.twists if model.n_tools else np.zeros((1, 6))
         for i in range(model.substeps):
+            if self.proj is not None:
+                self.projected_substep(state)
+                continue
             if model.has_emitters:
                 emit = np.stack([counts[i], counts[i + 1], times[i + 1]], axis=1).astype(np.float64)
                 self.substep_kernel_emitting(state, twist, emit)

@@ -1,0 +1,782 @@
+"""The liquid's pressure by a projection on the grid, solved together with one rigid body's motion
+(`Scene(pressure="projection")`; forward solver only). Issue 19; docs/engine.md, "Floating bodies: the projection".
+
+Why. With the default weakly compressible liquid (pressure from J by an equation of state) a rigid body and the
+liquid share one velocity field where they touch, and the liquid's push reaches the body only as the liquid
+compresses the body's bottom layers: a slow, history-dependent route, so that light bodies floated 0.1 of their
+side too high, then crept (docs/engine.md, "Open problems"). Here the liquid is incompressible, its pressure p (Pa)
+is the unknown of a Poisson problem on the MPM grid, and the body's rigid velocity q = (V, ω) is an unknown of the
+same solve (monolithic, after Batty, Bertails & Bridson 2007, "A fast variational framework for accurate
+solid-fluid coupling"): the body's push is the adjoint of its wall's flux, so that the coupling does no net work.
+
+Per substep (FastSolver.step):
+    P2G           the liquid's F stays I (its stress keeps only its deviatoric, viscous part); the body carries no
+                  stress; the liquid field's v* = mv/m + Δt g at every node (no walls yet), and v⁰ = mv/m (AFLIP)
+    classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
+                  (p = 0), WALL (beyond the walls' rows), BSOLID (inside the body, deeper than a cell; moving with it)
+    solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started)
+    correct       u = u* − Δt/ρ ∇p on the faces; q = q* + Δt M⁻¹ Q
+    G2P           the liquid's particles gather u and C from the faces (a staggered grid), with AFLIP
+    position      particles of a packed liquid move down the gradient of a second potential (below)
+    rigid         the body's projection to one rigid motion, with the walls' contact (rigid.py), then its push Δq
+
+Discretisation. Node I at x_I = origin + I Δx; the face f from I to J = I + s e_d (s = ±1) has the midpoint
+x_f, the body's solid share σ_f (the share of the face's Δx³ box inside the body, from the body's SDF φ:
+clamp(½ − φ(x_f)/Δx, 0, 1), from 4³ sub-boxes where |φ(x_f)| < Δx, so that a box holding an edge of the body
+counts it), its open share a_f = 1 − σ_f, and the walls' weight w_f (½ per wall the face's square lies on, after
+Batty et al. 2007's variational weights for a wall through the nodes; 0 beyond it). With K_f = (e_d, r_f × e_d),
+r_f = x_f − c:
+    (D u)_I = Σ_f s w_f [a_f u_f + σ_f K_f·q] / Δx
+    u_f = ½ (u*_I + u*_J)·e_d − Δt (p_J − p_I)/(ρ Δx)      (liquid–liquid)
+    u_f = u*_I·e_d − Δt (0 − p_I)/(ρ θ Δx)                 (liquid–air: p = 0 at θ of the way, θ from the fills,
+                                                             θ ≥ 0.1; ghost fluid, Gibou et al. 2002)
+    Q = Δx² Σ_I p_I b_I,   b_I = Σ_f s w_f σ_f K_f          (the pressure's force and torque on the body)
+    q = q* + Δt M⁻¹ Q,    M = diag(m 1, I_c),   q* = the body's velocity after the last push, plus g Δt
+Each solid face's weight whose segment the body's surface crosses (t cells beyond I, from φ at the two nodes) is
+moved from I to the crossing by linear extrapolation from I and I' = I − s e_d, b_I += (1 + t) w, b_I' += −t w,
+so that a linear pressure gives the surface's pressure, not the node's (held still at Archimedes' depth, a 4 cm cube
+gets 1.020 of its weight at 16 cells and 1.004 at 32; 1.055 and 1.009 without). A shell node inside the body but
+within a cell of its surface is liquid if it borders the liquid, unless its faces are open by less than half a
+face in all (its pressure would be ill-determined: such nodes threw the liquid out at 2-7 m/s): then it is the
+body's. The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q·q* + ½ Δq·M Δq, sum to
+−½ Δq·M Δq ≤ 0.
+
+Position correction (after Kugelstadt et al. 2019's density projection on positions): a FLIP liquid under a
+velocity projection packs (8-14 % of its volume in 2 s): with q = 0 at the free surface and Neumann at walls and
+body, −∇²ψ = φ − 1 at liquid nodes packed beyond 1.02, or loosened below 0.98 away from the surface, and each liquid
+particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles, adds no velocity.
+
+Units: p in Pa, velocities in m/s, ψ in m², q's angular part in rad/s. Float64 in the solve whatever the state's
+precision. The measurements behind each rule (and the rules tried and dropped) are in docs/engine.md and
+docs/experiments/README.md.
+"""
+import numpy as np
+import taichi as ti
+
+from fluidlab_core.engine import grid, transfer
+
+AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
+SHELL, LIQ_SHELL, AIR_SHELL, ENC_SHELL = 5, 6, 7, 8  # the classification's passes over the body's shell
+
+TOL = 1e-7  # the CG's relative residual
+MAX_IT = 400  # the CG's iteration cap
+FILL = 0.5  # a node with this much of its room filled by liquid is liquid (an unknown)
+THETA_MIN = 0.1  # the least share θ of the way from a liquid node to an air node at which p = 0 is placed
+OPEN_MIN = 0.5  # a shell node whose faces are open by less than this (faces, all six together) is the body's
+SUB_BOXES = 4  # sub-boxes per axis for a face's solid share where the body's surface may cross its box
+POSITION_CORRECTION = 0.5  # the share of the position correction's displacement applied per substep
+PACKING_BAND = 0.02  # no correction within 1 ± this fill
+MIC_TAU, MIC_SIGMA = 0.97, 0.25  # MIC(0) (Bridson, "Fluid Simulation for Computer Graphics", 2nd ed., §5.4)
+
+
+@ti.data_oriented
+class LiquidProjection:
+    """The projection of a FastSolver whose model has `projection` (one rigid body, liquids of one density)."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        model = solver.model
+        self.model = model
+        self.rho_w = float(model.liquid_density)
+        self.rho = ti.field(ti.f64, shape=())  # ρ_w in float64 (a Python constant would take the default precision)
+        shape = model.grid_shape
+        f64, real = ti.f64, model.real
+        self.kind = ti.field(ti.i8, shape=shape)
+        self.phi = ti.field(f64, shape=shape)  # the liquid's fill of the room its node has (free surface)
+        self.phi_all = ti.field(f64, shape=shape)  # all particles' and the walls' fill (the packing)
+        self.sdf = ti.field(f64, shape=shape)  # the body's SDF at the node (m)
+        self.vs = ti.Vector.field(3, f64, shape=shape)  # u* per node, or the wall's or the body's velocity
+        self.b = ti.field(f64, shape=shape)  # right-hand side
+        self.p = ti.field(f64, shape=shape)  # the solution (Pa; ψ in m² during the position correction)
+        self.psi = ti.field(f64, shape=shape)  # the position correction's potential (m²), warm start
+        self.p_keep = ti.field(f64, shape=shape)
+        self.r = ti.field(f64, shape=shape)  # CG: residual, preconditioned residual, direction, A d
+        self.z = ti.field(f64, shape=shape)
+        self.d = ti.field(f64, shape=shape)
+        self.Ad = ti.field(f64, shape=shape)
+        self.diag = ti.field(f64, shape=shape)  # the liquid Laplacian's diagonal
+        self.pdiag = ti.field(f64, shape=shape)  # with the body's rank-6 term
+        self.aoff = ti.Vector.field(6, f64, shape=shape)  # off-diagonal face weights a_f w_f/ρ to −x, +x, …, +z
+        self.sig_p = ti.Vector.field(3, f64, shape=shape)  # σ of the face from I to I + e_d
+        self.bf = ti.Vector.field(3, f64, shape=shape)  # b_I's force part (1)
+        self.bt = ti.Vector.field(3, f64, shape=shape)  # and torque part (m)
+        self.mic = ti.field(f64, shape=shape)  # 1/√e of the MIC(0) factor's diagonal
+        self.mic_q = ti.field(f64, shape=shape)  # and the forward sweep's result
+        self.disp = ti.Vector.field(3, real, shape=shape)  # the position correction's −∇ψ at liquid nodes (m)
+        self.uf = ti.Vector.field(3, real, shape=shape)  # face I + ½e_d's velocity after the solve (m/s)
+        self.uf0 = ti.Vector.field(3, real, shape=shape)  # and before gravity and the solve (AFLIP's v⁰)
+        self.bx_f = ti.Vector.field(3, f64, shape=())  # Σ_I x_I b_I (force, torque parts)
+        self.bx_t = ti.Vector.field(3, f64, shape=())
+        self.q_lin = ti.Vector.field(3, f64, shape=())  # q*: the body's velocity the solve starts from (m/s)
+        self.q_ang = ti.Vector.field(3, f64, shape=())  # (rad/s)
+        self.dq_lin = ti.Vector.field(3, f64, shape=())  # the last push's velocity change
+        self.dq_ang = ti.Vector.field(3, f64, shape=())
+        self.body_dP = ti.Vector.field(3, f64, shape=())  # the solve's impulse on the body (N s)
+        self.body_dL = ti.Vector.field(3, f64, shape=())  # its angular impulse about the centre of mass (N m s)
+        self.minv_I = ti.Matrix.field(3, 3, f64, shape=())  # I_c⁻¹ (world)
+        self.minv_m = ti.field(f64, shape=())  # 1/m
+        self.force = ti.Vector.field(3, real, shape=())  # the push's force (N) and torque (N m), from the host
+        self.torque = ti.Vector.field(3, real, shape=())
+        self.iterations = []  # the pressure solve's CG iterations per substep
+        self.correction_iterations = []  # the position correction's
+        self.primed = False
+
+    def reset(self):
+        """Forget the last push and the warm starts (a new state was written): the next substep primes the body's
+        pose again."""
+        for f in (self.dq_lin, self.dq_ang):
+            f.from_numpy(np.zeros(3))
+        self.p.fill(0.0)
+        self.psi.fill(0.0)
+        self.primed = False
+
+    # --- helpers ------------------------------------------------------------------------------------------
+    @ti.func
+    def _unknown(self, I):
+        return self.kind[I] == LIQ
+
+    @ti.func
+    def _inside(self, J):
+        ok = True
+        for d in ti.static(range(3)):
+            if J[d] < 0 or J[d] >= self.model.grid_shape[d]:
+                ok = False
+        return ok
+
+    @ti.func
+    def _on_wall(self, I, e: ti.template()):
+        tol = 0.01 * self.model.dx
+        xe = self.model.origin[e] + I[e] * self.model.dx
+        return ti.abs(xe - self.model.lower[e]) < tol or ti.abs(xe - self.model.upper[e]) < tol
+
+    @ti.func
+    def _cellw(self, I):
+        """Share of node I's cell inside the domain: ½ per wall whose row it is on."""
+        w = ti.f64(1.0)
+        for e in ti.static(range(3)):
+            if self._on_wall(I, e):
+                w *= 0.5
+        return w
+
+    @ti.func
+    def _facew(self, I, d: ti.template()):
+        """Share of the face between I and I ± e_d inside the domain: the cell's, less the wall across d."""
+        w = self._cellw(I)
+        if self._on_wall(I, d):
+            w *= 2.0
+        return w
+
+    @ti.func
+    def _beta(self):
+        """1/ρ on a face between two liquid nodes."""
+        return 2.0 / (self.rho[None] + self.rho[None])
+
+    @ti.func
+    def _body(self):
+        """The body's (R, c, valid): valid is False before its first rigid projection (R still zero)."""
+        rp = self.solver.rigid
+        R = rp.R[0]
+        return R, rp.com_sum[0] / self.model.rigid.body_mass[0], R.determinant() > 0.5
+
+    @ti.func
+    def _t_cross(self, I, J):
+        """Where the body's surface crosses the segment from node I to J, in cells from I (linear in the SDF at the
+        two nodes); 0 where it does not cross."""
+        a, b = self.sdf[I], self.sdf[J]
+        t = ti.f64(0.0)
+        if a > 0.0 and b < 0.0:
+            t = ti.min(a / (a - b), 1.0)
+        return t
+
+    @ti.func
+    def _solid(self, I, J):
+        """The body's share σ of the face between node I and its neighbour J (module docstring)."""
+        out = ti.f64(0.0)
+        if self.kind[I] == BSOLID or self.kind[J] == BSOLID:
+            out = 1.0
+        else:
+            rig = self.model.rigid
+            R, c, valid = self._body()
+            xm = ti.Vector(self.model.origin) + 0.5 * (I + J) * self.model.dx
+            xl = R.transpose() @ (xm - c) + rig.rest_com[0]
+            sd = ti.cast(rig.sdfs[0](xl), ti.f64)
+            if valid:
+                out = ti.min(ti.max(0.5 - sd / self.model.dx, 0.0), 1.0)
+                if ti.abs(sd) < self.model.dx:
+                    n = ti.static(SUB_BOXES)
+                    h = self.model.dx / n
+                    acc = ti.f64(0.0)
+                    for a, b_, c_ in ti.ndrange(n, n, n):
+                        xs = xm + (ti.Vector([a, b_, c_]) + 0.5) * h - 0.5 * self.model.dx
+                        xsl = R.transpose() @ (xs - c) + rig.rest_com[0]
+                        acc += ti.min(ti.max(0.5 - ti.cast(rig.sdfs[0](xsl), ti.f64) / h, 0.0), 1.0)
+                    out = acc / (n * n * n)
+        return out
+
+    @ti.func
+    def _K(self, I, d: ti.template(), sgn: ti.template()):
+        """K_f's torque part, r_f × e_d (m), at the midpoint of the face from I along sgn e_d."""
+        rp = self.solver.rigid
+        c = ti.cast(rp.com_sum[0] / self.model.rigid.body_mass[0], ti.f64)
+        xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
+            + 0.5 * sgn * self.model.dx * ti.Vector.unit(3, d, ti.f64)
+        return (xf - c).cross(ti.Vector.unit(3, d, ti.f64))
+
+    @ti.func
+    def _theta(self, I, J):
+        """Share of the way from liquid node I to air node J at which the fill crosses FILL."""
+        a, b = self.phi[I], self.phi[J]
+        th = ti.f64(1.0)
+        if a - b > 1e-9:
+            th = (a - FILL) / (a - b)
+        return ti.min(ti.max(th, THETA_MIN), 1.0)
+
+    @ti.func
+    def _sig(self, I, d: ti.template(), sgn: ti.template()):
+        """σ of the face from node I to I + sgn e_d (sig_p, set by rhs for this projection)."""
+        out = ti.f64(0.0)
+        if ti.static(sgn > 0):
+            out = self.sig_p[I][d]
+        else:
+            out = self.sig_p[I - ti.Vector.unit(3, d, ti.i32)][d]
+        return out
+
+    # --- the pressure solve -------------------------------------------------------------------------------
+    @ti.kernel
+    def classify(self):
+        """Node kinds, fills, u*, the body's SDF at the nodes; q* and M⁻¹."""
+        s = self.solver
+        model = self.model
+        rp = s.rigid
+        rig = model.rigid
+        R, c, valid = self._body()
+        vb, wb = rp.momentum[0] / rig.body_mass[0], rp.omega[0]
+        tol = 0.01 * model.dx
+        g = ti.Vector(model.gravity)
+        vb = vb + ti.cast(self.dq_lin[None], model.real) + g * model.dt  # q*
+        wb = wb + ti.cast(self.dq_ang[None], model.real)
+        self.q_lin[None] = ti.cast(vb, ti.f64)
+        self.q_ang[None] = ti.cast(wb, ti.f64)
+        Ic = ti.cast(rp.inertia[0], ti.f64)
+        self.minv_I[None] = ti.Matrix.zero(ti.f64, 3, 3)
+        self.minv_m[None] = 1.0 / ti.cast(rig.body_mass[0], ti.f64)
+        if ti.abs(Ic.determinant()) > 0.0:
+            self.minv_I[None] = Ic.inverse()
+        for I in ti.grouped(self.kind):
+            xn = ti.Vector(model.origin) + I * model.dx
+            wall = False
+            for d in ti.static(range(3)):
+                if xn[d] < model.lower[d] - tol or xn[d] > model.upper[d] + tol:  # beyond the wall rows
+                    wall = True
+            xl = R.transpose() @ (xn - c) + rig.rest_com[0]
+            sd = rig.sdfs[0](xl)
+            self.sdf[I] = ti.cast(sd, ti.f64)
+            deep = valid and sd <= -model.dx  # the body's own node
+            fill = ti.cast(s.grid_vol[I] * model.inv_dx ** 3 + model.solid_share[I], ti.f64)
+            self.phi_all[I] = fill
+            if not deep:  # the liquid's share of the room the walls and the body leave at the node
+                liq = ti.cast(s.grid_m_f[I] * model.inv_dx ** 3, ti.f64) / self.rho_w
+                body = ti.max(ti.cast(s.grid_vol[I] * model.inv_dx ** 3, ti.f64) - liq, 0.0)
+                wall_share = ti.cast(model.solid_share[I], ti.f64)
+                fill = liq / ti.max(1.0 - wall_share - body, 0.05)
+            self.phi[I] = fill
+            v_body = ti.cast(vb + wb.cross(xn - c), ti.f64)
+            k = AIR
+            v = ti.Vector.zero(ti.f64, 3)
+            if wall:
+                k = WALL
+            elif deep:
+                k = BSOLID
+                v = v_body
+            elif valid and sd < 0.0:
+                k = SHELL  # decided below, from its neighbours
+                v = v_body
+                if s.grid_m_f[I] > model.mass_floor:
+                    v = ti.cast(s.grid_v_f[I], ti.f64)
+            elif s.grid_m_f[I] > model.mass_floor and fill >= FILL:
+                k = LIQ
+                v = ti.cast(grid.walls(model, xn, s.grid_v_f[I]), ti.f64)  # the wall's velocity normal to it
+            self.kind[I] = ti.cast(k, ti.i8)
+            self.vs[I] = v
+        # a shell node is liquid where a neighbour outside the body is, whatever liquid mass the exclusion's gap
+        # leaves it (its fill would call it air, and the bottom face's push would lose the shell's part), unless
+        # the body nearly encloses it
+        for I in ti.grouped(self.kind):
+            if self.kind[I] == SHELL:
+                wet = False
+                for d in ti.static(range(3)):
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            if self.kind[J] == LIQ and self.sdf[J] >= 0.0:
+                                wet = True
+                k = LIQ_SHELL if wet else AIR_SHELL
+                open_share = ti.f64(0.0)
+                for d in ti.static(range(3)):
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            open_share += 1.0 - self._solid(I, J)
+                if open_share < OPEN_MIN:
+                    k = ENC_SHELL
+                self.kind[I] = ti.cast(k, ti.i8)
+        for I in ti.grouped(self.kind):
+            if self.kind[I] == LIQ_SHELL:
+                self.kind[I] = ti.cast(LIQ, ti.i8)
+            elif self.kind[I] == AIR_SHELL:
+                self.kind[I] = ti.cast(AIR, ti.i8)
+            elif self.kind[I] == ENC_SHELL:
+                self.kind[I] = ti.cast(BSOLID, ti.i8)
+                xn = ti.Vector(model.origin) + I * model.dx
+                self.vs[I] = ti.cast(vb + wb.cross(xn - c), ti.f64)
+
+    @ti.kernel
+    def rhs(self):
+        """σ and the matrix's weights; b = −(D u*)/Δt, the diagonal, and the body's b_I at the unknowns."""
+        dx = self.model.dx
+        for I in ti.grouped(self.kind):
+            for d in ti.static(range(3)):
+                J = I + ti.Vector.unit(3, d, ti.i32)
+                self.sig_p[I][d] = 0.0
+                if self._inside(J):
+                    self.sig_p[I][d] = self._solid(I, J)
+        for I in ti.grouped(self.kind):
+            self.aoff[I] = ti.Vector.zero(ti.f64, 6)
+            if self._unknown(I):
+                for d in ti.static(range(3)):
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            if self._unknown(J):
+                                a = 1.0 - self._sig(I, d, sgn)
+                                self.aoff[I][ti.static(2 * d + (sgn + 1) // 2)] = self._facew(I, d) * a * self._beta()
+        for I in ti.grouped(self.kind):
+            self.b[I] = 0.0
+            self.diag[I] = 0.0
+            self.pdiag[I] = 0.0
+            self.bf[I] = ti.Vector.zero(ti.f64, 3)
+            self.bt[I] = ti.Vector.zero(ti.f64, 3)
+            if self._unknown(I):
+                div = ti.f64(0.0)
+                dg = ti.f64(0.0)
+                for d in ti.static(range(3)):
+                    fw = self._facew(I, d)
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            kj = self.kind[J]
+                            if kj == WALL:
+                                div += sgn * fw * self.vs[J][d]
+                            else:
+                                sig = self._sig(I, d, sgn)
+                                a = 1.0 - sig
+                                uf = ti.f64(0.0)
+                                if kj == AIR:
+                                    uf = self.vs[I][d]
+                                    dg += fw * a / (self.rho[None] * self._theta(I, J))
+                                elif kj != BSOLID:
+                                    uf = 0.5 * (self.vs[I][d] + self.vs[J][d])
+                                    dg += fw * a * self._beta()
+                                Kt = self._K(I, d, sgn)
+                                div += sgn * fw * a * uf
+                                wgt = ti.f64(1.0)  # a solid face's weight moved to the surface's crossing
+                                Ip = I - sgn * ti.Vector.unit(3, d, ti.i32)
+                                if self._inside(Ip) and kj == BSOLID:
+                                    if self._unknown(Ip):
+                                        wgt = 1.0 + self._t_cross(I, J)
+                                self.bf[I][d] += sgn * fw * sig * wgt
+                                self.bt[I] += sgn * fw * sig * wgt * Kt
+                    # −t w_f of the faces of the neighbours N = I + s e_d whose face beyond them is solid
+                    for sgn in ti.static((-1, 1)):
+                        N = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        K2 = N + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(N) and self._inside(K2):
+                            if self._unknown(N) and self.kind[K2] == BSOLID:
+                                sig2 = self._sig(N, d, sgn)
+                                if sig2 > 0.0:
+                                    fw2 = self._facew(N, d)
+                                    t2 = self._t_cross(N, K2)
+                                    self.bf[I][d] += -t2 * sgn * fw2 * sig2
+                                    self.bt[I] += -t2 * sgn * fw2 * sig2 * self._K(N, d, sgn)
+                div += self.bf[I].dot(self.q_lin[None]) + self.bt[I].dot(self.q_ang[None])
+                self.b[I] = -div / (dx * self.model.dt)
+                if dg < 1e-6 / self.rho_w:  # no open face (a node the body encloses): a small diagonal fixes p
+                    dg = 1e-3 / self.rho_w
+                self.diag[I] = dg / (dx * dx)
+                bf, bt = self.bf[I], self.bt[I]
+                self.pdiag[I] = self.diag[I] + dx * (bf.dot(bf) * self.minv_m[None] + bt.dot(self.minv_I[None] @ bt))
+
+    @ti.func
+    def _A(self, x: ti.template(), I):
+        dx = self.model.dx
+        out = self.diag[I] * x[I]
+        for d in ti.static(range(3)):
+            for sgn in ti.static((-1, 1)):
+                k = ti.static(2 * d + (sgn + 1) // 2)
+                w = self.aoff[I][k]
+                if w != 0.0:
+                    out -= w * x[I + sgn * ti.Vector.unit(3, d, ti.i32)] / (dx * dx)
+        # Δx b_I · M⁻¹ Σ_J x_J b_J (bx set by _bx_of beforehand)
+        out += dx * (self.bf[I].dot(self.bx_f[None]) * self.minv_m[None]
+                     + self.bt[I].dot(self.minv_I[None] @ self.bx_t[None]))
+        return out
+
+    @ti.func
+    def _bx_of(self, x: ti.template()):
+        self.bx_f[None] = ti.Vector.zero(ti.f64, 3)
+        self.bx_t[None] = ti.Vector.zero(ti.f64, 3)
+        for I in ti.grouped(self.kind):
+            if self._unknown(I):
+                self.bx_f[None] += x[I] * self.bf[I]
+                self.bx_t[None] += x[I] * self.bt[I]
+
+    @ti.kernel
+    def body_impulse(self):
+        """The solve's impulse on the body, Δt Q = Δt Δx² Σ p b, and q's change Δq."""
+        self._bx_of(self.p)
+        dx, dt = self.model.dx, self.model.dt
+        self.body_dP[None] = dt * dx * dx * self.bx_f[None]
+        self.body_dL[None] = dt * dx * dx * self.bx_t[None]
+        self.dq_lin[None] = self.body_dP[None] * self.minv_m[None]
+        self.dq_ang[None] = self.minv_I[None] @ self.body_dL[None]
+
+    @ti.kernel
+    def _start(self) -> ti.f64:
+        rr = ti.f64(0.0)
+        self._bx_of(self.p)
+        for I in ti.grouped(self.kind):
+            self.r[I] = 0.0
+            self.z[I] = 0.0
+            if self._unknown(I):
+                self.r[I] = self.b[I] - self._A(self.p, I)
+            else:
+                self.p[I] = 0.0
+        for I in ti.grouped(self.kind):
+            if self._unknown(I):
+                self.z[I] = self.r[I] / self.pdiag[I]
+                self.d[I] = self.z[I]
+                rr += self.r[I] * self.z[I]
+            else:
+                self.d[I] = 0.0
+        return rr
+
+    @ti.kernel
+    def _norm(self, f: ti.template()) -> ti.f64:
+        s = ti.f64(0.0)
+        for I in ti.grouped(f):
+            if self._unknown(I):
+                s += f[I] * f[I]
+        return s
+
+    @ti.kernel
+    def _apply_dot(self) -> ti.f64:
+        s = ti.f64(0.0)
+        self._bx_of(self.d)
+        for I in ti.grouped(self.kind):
+            self.Ad[I] = 0.0
+            if self._unknown(I):
+                self.Ad[I] = self._A(self.d, I)
+                s += self.d[I] * self.Ad[I]
+        return s
+
+    @ti.kernel
+    def _update(self, alpha: ti.f64) -> ti.f64:
+        """p += α d, r −= α A d; returns r·r."""
+        rr = ti.f64(0.0)
+        for I in ti.grouped(self.kind):
+            if self._unknown(I):
+                self.p[I] += alpha * self.d[I]
+                self.r[I] -= alpha * self.Ad[I]
+                rr += self.r[I] * self.r[I]
+        return rr
+
+    @ti.kernel
+    def _direction(self, beta: ti.f64):
+        for I in ti.grouped(self.kind):
+            if self._unknown(I):
+                self.d[I] = self.z[I] + beta * self.d[I]
+
+    @ti.func
+    def _aplus(self, I, d: ti.template()):
+        """The matrix's entry between unknown I and I + e_d, −a_f w_f β/Δx² (≤ 0; 0 where that is no unknown)."""
+        return -self.aoff[I][ti.static(2 * d + 1)] / (self.model.dx * self.model.dx)
+
+    @ti.kernel
+    def mic0(self):
+        """The MIC(0) factor of the sparse part (the body's rank-6 term is left to the CG), once per projection."""
+        nx, ny, nz = ti.static(self.model.grid_shape)
+        ti.loop_config(serialize=True)
+        for i, j, k in ti.ndrange(nx, ny, nz):
+            I = ti.Vector([i, j, k])
+            self.mic[I] = 0.0
+            if self._unknown(I):
+                ad = self.diag[I]
+                e = ad
+                for d in ti.static(range(3)):
+                    Im = I - ti.Vector.unit(3, d, ti.i32)
+                    if Im[d] >= 0:
+                        if self._unknown(Im):
+                            a = self._aplus(Im, d)
+                            pm = self.mic[Im]
+                            others = ti.f64(0.0)
+                            for d2 in ti.static(range(3)):
+                                if ti.static(d2 != d):
+                                    others += self._aplus(Im, d2)
+                            e -= (a * pm) ** 2 + MIC_TAU * a * others * pm * pm
+                if e < MIC_SIGMA * ad:
+                    e = ad
+                self.mic[I] = 1.0 / ti.sqrt(e)
+
+    @ti.kernel
+    def _precond(self) -> ti.f64:
+        """z = M⁻¹ r by the two sweeps of the MIC(0) factor (serial, lexicographic); returns r·z."""
+        nx, ny, nz = ti.static(self.model.grid_shape)
+        ti.loop_config(serialize=True)
+        for i, j, k in ti.ndrange(nx, ny, nz):
+            I = ti.Vector([i, j, k])
+            self.mic_q[I] = 0.0
+            if self._unknown(I):
+                t = self.r[I]
+                for d in ti.static(range(3)):
+                    Im = I - ti.Vector.unit(3, d, ti.i32)
+                    if Im[d] >= 0:
+                        t -= self._aplus(Im, d) * self.mic[Im] * self.mic_q[Im]
+                self.mic_q[I] = t * self.mic[I]
+        ti.loop_config(serialize=True)
+        for i_, j_, k_ in ti.ndrange(nx, ny, nz):
+            I = ti.Vector([nx - 1 - i_, ny - 1 - j_, nz - 1 - k_])
+            self.z[I] = 0.0
+            if self._unknown(I):
+                t = self.mic_q[I]
+                for d in ti.static(range(3)):
+                    Ip = I + ti.Vector.unit(3, d, ti.i32)
+                    if Ip[d] < self.model.grid_shape[d]:
+                        t -= self._aplus(I, d) * self.mic[I] * self.z[Ip]
+                self.z[I] = t * self.mic[I]
+        rz = ti.f64(0.0)
+        for I in ti.grouped(self.kind):
+            if self._unknown(I):
+                rz += self.r[I] * self.z[I]
+        return rz
+
+    def solve(self, iterations: list):
+        """Preconditioned CG on (A_a + Δx B M⁻¹ Bᵀ) p = b from the p held (warm start); appends its iterations."""
+        self._start()
+        rz = self._precond()
+        self._direction(0.0)  # d = z
+        bn = np.sqrt(self._norm(self.b))
+        it = 0
+        if bn > 0:
+            for it in range(1, MAX_IT + 1):
+                pAp = self._apply_dot()
+                if pAp <= 0:
+                    break
+                rr = self._update(rz / pAp)
+                if np.sqrt(rr) <= TOL * bn:
+                    break
+                rz_new = self._precond()
+                self._direction(rz_new / rz)
+                rz = rz_new
+        iterations.append(it)
+
+    # --- the correction -----------------------------------------------------------------------------------
+    @ti.func
+    def _grad(self, I):
+        """G_I (Pa/m, or m for ψ): per axis the mean of the open faces' gradients, each by its open share."""
+        dx = self.model.dx
+        G = ti.Vector.zero(ti.f64, 3)
+        for d in ti.static(range(3)):
+            s, n = ti.f64(0.0), ti.f64(0.0)
+            for sgn in ti.static((-1, 1)):
+                J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                if self._inside(J):
+                    kj = self.kind[J]
+                    a = 1.0 - self._sig(I, d, sgn)
+                    if kj == AIR:
+                        s += a * sgn * (0.0 - self.p[I]) / (self._theta(I, J) * dx)
+                        n += a
+                    elif kj != WALL and kj != BSOLID:
+                        s += a * sgn * (self.p[J] - self.p[I]) / dx
+                        n += a
+            if n > 1e-6:
+                G[d] = s / n
+        return G
+
+    @ti.kernel
+    def correct(self):
+        """The liquid field's nodes corrected by the gradient (their mean face gradient; the air nodes with liquid
+        mass by their faces to liquid nodes), then the walls: the fallback for faces outside the solve."""
+        s = self.solver
+        dt = self.model.dt
+        for I in ti.grouped(self.kind):
+            k = self.kind[I]
+            if k == LIQ:
+                s.grid_v_f[I] -= ti.cast(dt / self.rho_w * self._grad(I), self.model.real)
+            elif k == AIR and s.grid_m_f[I] > self.model.mass_floor:
+                G = ti.Vector.zero(ti.f64, 3)
+                for d in ti.static(range(3)):
+                    acc, n = ti.f64(0.0), 0
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            if self.kind[J] == LIQ:
+                                acc += -sgn * (0.0 - self.p[J]) / (self._theta(J, I) * self.model.dx)
+                                n += 1
+                    if n > 0:
+                        G[d] = acc / n
+                s.grid_v_f[I] -= ti.cast(dt / self.rho_w * G, self.model.real)
+        for I in ti.grouped(self.kind):
+            if s.grid_m_f[I] > self.model.mass_floor:
+                xn = ti.Vector(self.model.origin) + I * self.model.dx
+                s.grid_v_f[I] = grid.walls(self.model, xn, s.grid_v_f[I])
+
+    @ti.kernel
+    def faces(self):
+        """uf (after the solve, divergence-free where the solve reaches) and uf0 (before gravity) on every face
+        I + ½e_d; a face the body shares takes its share of the body's velocity."""
+        s = self.solver
+        dx, dt = self.model.dx, self.model.dt
+        g = ti.cast(ti.Vector(self.model.gravity), ti.f64)
+        c = ti.cast(s.rigid.com_sum[0] / self.model.rigid.body_mass[0], ti.f64)
+        ql_new = self.q_lin[None] + self.dq_lin[None]
+        qa_new = self.q_ang[None] + self.dq_ang[None]
+        ql_old = self.q_lin[None] - g * dt
+        qa_old = self.q_ang[None]
+        for I in ti.grouped(self.kind):
+            for d in ti.static(range(3)):
+                J = I + ti.Vector.unit(3, d, ti.i32)
+                u = ti.f64(0.0)
+                u0 = ti.f64(0.0)
+                if self._inside(J):
+                    ki, kj = self.kind[I], self.kind[J]
+                    ui, uj = self._unknown(I), self._unknown(J)
+                    v0i = ti.cast(s.grid_v0[I][d], ti.f64)
+                    v0j = ti.cast(s.grid_v0[J][d], ti.f64)
+                    # outside the solve: the nodes' means (corrected field; pre-gravity field)
+                    u = 0.5 * ti.cast(s.grid_v_f[I][d] + s.grid_v_f[J][d], ti.f64)
+                    u0 = 0.5 * (v0i + v0j)
+                    if ui and uj:
+                        u = 0.5 * (self.vs[I][d] + self.vs[J][d]) - dt * self._beta() * (self.p[J] - self.p[I]) / dx
+                    elif ui and kj == AIR:
+                        u = self.vs[I][d] - dt / self.rho[None] * (0.0 - self.p[I]) / (self._theta(I, J) * dx)
+                        u0 = v0i
+                    elif uj and ki == AIR:
+                        u = self.vs[J][d] - dt / self.rho[None] * (self.p[J] - 0.0) / (self._theta(J, I) * dx)
+                        u0 = v0j
+                    elif (ui and kj == WALL) or (uj and ki == WALL):
+                        u = 0.0
+                        u0 = 0.0
+                    if ui or uj:
+                        sig = self.sig_p[I][d]
+                        if sig > 0.0:
+                            xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
+                                + 0.5 * dx * ti.Vector.unit(3, d, ti.f64)
+                            ub = ql_new[d] + qa_new.cross(xf - c)[d]
+                            ub0 = ql_old[d] + qa_old.cross(xf - c)[d]
+                            u = (1.0 - sig) * u + sig * ub
+                            u0 = (1.0 - sig) * u0 + sig * ub0
+                self.uf[I][d] = ti.cast(u, self.model.real)
+                self.uf0[I][d] = ti.cast(u0, self.model.real)
+
+    @ti.func
+    def gather_faces(self, uf: ti.template(), xp):
+        """v_p and C_p = (4/Δx²) Σ w u_f (x_f − x_p)ᵀ from the face field uf, component d from the faces I + ½e_d
+        with the quadratic B-spline (the node stencil at x − ½Δx e_d)."""
+        v = ti.Vector.zero(self.model.real, 3)
+        C = ti.Matrix.zero(self.model.real, 3, 3)
+        for d in ti.static(range(3)):
+            xs = xp - 0.5 * self.model.dx * ti.Vector.unit(3, d, self.model.real)
+            base, fx, w = grid.stencil(self.model, xs)
+            for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+                dpos = offset - fx
+                weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+                u = uf[base + offset][d]
+                v[d] += weight * u
+                for e in ti.static(range(3)):
+                    C[d, e] += 4.0 * self.model.inv_dx * weight * u * dpos[e]
+        return v, C
+
+    # --- the position correction ----------------------------------------------------------------------------
+    @ti.kernel
+    def _packing_rhs(self):
+        """ψ into p (the solver's field) and the packing's right-hand side: −∇²ψ = φ − 1 beyond the band."""
+        for I in ti.grouped(self.kind):
+            self.p_keep[I] = self.p[I]
+            self.p[I] = self.psi[I]
+            val = ti.f64(0.0)
+            if self.kind[I] == LIQ:
+                f = self.phi_all[I]
+                interior = True
+                for d in ti.static(range(3)):
+                    for sgn in ti.static((-1, 1)):
+                        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            if self.kind[J] == AIR:
+                                interior = False
+                if f > 1.0 + PACKING_BAND:
+                    val = f - 1.0 - PACKING_BAND
+                elif f < 1.0 - PACKING_BAND and interior:
+                    val = f - 1.0 + PACKING_BAND
+            self.b[I] = self._cellw(I) * val / self.rho[None]  # A = −β ∇² with β = 1/ρ
+
+    @ti.kernel
+    def _packing_displacement(self):
+        for I in ti.grouped(self.kind):
+            d = ti.Vector.zero(ti.f64, 3)
+            if self.kind[I] == LIQ:
+                d = -self._grad(I)
+            self.disp[I] = ti.cast(d, self.model.real)
+        for I in ti.grouped(self.kind):
+            self.psi[I] = self.p[I]
+            self.p[I] = self.p_keep[I]
+
+    @ti.kernel
+    def displace(self):
+        """Each liquid particle, where G2P put it (the rigid projection's input), by α × the displacement."""
+        a = ti.cast(POSITION_CORRECTION, self.model.real)
+        for p in range(self.model.n_particles):
+            if transfer.is_fluid(self.model, p):
+                xg = self.solver.rigid.x_g[p]
+                base, fx, w = grid.stencil(self.model, xg)
+                d = ti.Vector.zero(self.model.real, 3)
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    d += w[i][0] * w[j][1] * w[k][2] * self.disp[base + ti.Vector([i, j, k])]
+                self.solver.rigid.x_g[p] = xg + a * d
+
+    # --- the body -------------------------------------------------------------------------------------------
+    @ti.kernel
+    def _push(self, state: ti.template()):
+        rp = self.solver.rigid
+        M = self.model.rigid.body_mass[0]
+        c = rp.com_sum[0] / M
+        dw = rp.inertia[0].inverse() @ self.torque[None] * self.model.dt
+        dv = self.force[None] / M * self.model.dt
+        for p in range(self.model.n_particles):
+            if self.model.rigid.body[p] == 0:
+                state.v[0, p] += dv + dw.cross(state.x[0, p] - c)
+
+    def push(self, state):
+        """The solve's impulse on the body's particles, after the rigid projection: v += Δt (F/M + (I⁻¹τ) × r),
+        F = ΔP/Δt, τ = ΔL/Δt."""
+        dt = float(self.model.dt)
+        self.force.from_numpy((self.body_dP.to_numpy() / dt).astype(self.model.np_real))
+        self.torque.from_numpy((self.body_dL.to_numpy() / dt).astype(self.model.np_real))
+        self._push(state)
+
+    def project(self, state):
+        """The substep's projection, between the grid update and G2P."""
+        if not self.primed:  # the body's pose before the first projection (nothing has projected it yet)
+            self.rho[None] = self.rho_w
+            self.solver.rigid.prime(state)
+            self.primed = True
+        self.classify()
+        self.rhs()
+        self.mic0()
+        self.solve(self.iterations)
+        self.body_impulse()
+        self.correct()
+        self.faces()
+        # the position correction: the same solver on the packing's right-hand side (ψ swapped into p)
+        self._packing_rhs()
+        self.solve(self.correction_iterations)
+        self._packing_displacement()

@@ -1,0 +1,102 @@
+"""The liquid's pressure by projection, solved with a rigid body's motion (Scene(pressure="projection"),
+engine/projection.py; issue 19): bodies at Archimedes' depth in 3-D, a heavy body on the floor, and what the option
+refuses. CPU, float32, 16 cells across a 12 cm tank (the validation set-up of apps/validation.floating_cube_sim)."""
+import numpy as np
+import pytest
+
+import fluidlab_core as fl
+from fluidlab_core import materials as M
+from fluidlab_core.apps import validation
+from fluidlab_core.shapes import Box
+from tests.conftest import fresh, report
+
+WIDTH, SIDE = 0.12, 0.04
+
+
+def _volume_share(sim):
+    waters = [h for h in sim.handles if h != "cube"]
+    volume = sum(float(sim.volumes(h).sum()) for h in waters)
+    share, _ = validation.submerged_by_volume(volume, sim.positions("cube"), sim.volumes("cube"), WIDTH * WIDTH)
+    return share
+
+
+def _dropped(density, seconds, every=0.05):
+    """A 4 cm rigid cube of `density` dropped from 1 cm onto 6 cm of water (16 cells, 2 substeps of 1 ms, the
+    projection): (times, volume shares, centre heights) every `every` seconds."""
+    body = M.Rigid(f"rigid_{density:g}", density=density)
+    sim, scene = validation.floating_cube_sim(16, body, M.WATER, drop=0.01, width=WIDTH, side=SIDE, substep_factor=2,
+                                              pressure="projection")
+    assert scene.substeps == 2  # the flow's CFL sets the substep, not the liquid's or the body's sound speed
+    n = int(round(every / scene.dt))
+    times, shares, heights = [], [], []
+    while sim.time < seconds - 1e-9:
+        sim.step(n=n)
+        times.append(sim.time)
+        shares.append(_volume_share(sim))
+        heights.append(float(sim.positions("cube")[:, 2].mean()))
+    return np.array(times), np.array(shares), np.array(heights)
+
+
+def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
+    """Issue 19's test: a 4 cm rigid cube of 500 kg/m³ dropped from 1 cm onto 6 cm of water in a closed 12 cm tank
+    (3-D, 16 cells across, float32 on the CPU) floats with the share ρ/ρ_w = 0.50 ± 0.03 of its volume under the
+    surface that the liquid's volume fills the tank to, as the mean over its second second (after the landing's
+    plunge and the first bobs: a real cube's landing second reads 0.49-0.54 by bench/heave_drop_model.py),
+    within ± 0.05 here. Why not the issue's ± 0.03: the 10 s runs meet ± 0.03 in every second after the landing
+    (0.476-0.520 at 16 cells), but two runs that differ only by the rounding of the grid sums (two threads here,
+    one in the bench) part by up to 0.02 in a second's mean, since the half-density cube, unstable face-down,
+    tips in its second second and sets the tank sloshing (docs/experiments/README.md, cc500.log against
+    nc500.log; seconds 4-10 read 0.480-0.504 in one run and 0.515-0.520 in the other). The default coupling's
+    0.40 is 0.10 off, so the bound still tells the two apart.
+
+    The default coupling (pressure="state") fails this: 0.403 from 0.5 s to 1.5 s in the same set-up (measured
+    2026-11-29), then sinking; its strict expected failure was this file's predecessor in
+    tests/test_physics_solids.py. Measured here (2026-12-05, two threads): 0.529 in the first second, 0.479 in the
+    second (the bench's, one thread, sampled every 0.1 s: 0.545, 0.476). Over 10 s (bench/buoyancy_3d.py rigid std 10
+    --res 16 --drop 0.01 --substep-factor 2 --pressure projection) the per-second means stay within ± 0.03 after the
+    landing second (bench/results/buoyancy_3d.txt)."""
+    times, shares, heights = fresh(_dropped, 500.0, 2.0)
+    window = times > 1.0 + 1e-9
+    share = float(shares[window].mean())
+    report("projection, dropped cube", second_1=float(shares[times <= 1.0 + 1e-9].mean()), second_2=share,
+           spread=float(np.ptp(shares[window])), expected=0.5)
+    assert abs(share - 0.5) < 0.03
+
+
+def test_heavy_cube_sinks_and_rests_on_the_floor():
+    """A 4 cm rigid cube of 2000 kg/m³ dropped from 1 cm above 6 cm of water sinks to the floor and rests there,
+    its centre at 20 mm (half its side) within a tenth of a cell at 0.2 s and 0.3 s: the walls' contact
+    (engine/rigid.py) holds a body that carries no stress. Measured (2026-12-05): 49.23 mm at 0.1 s, then 19.94,
+    19.95, 19.95, 19.95 mm to 0.5 s; without the contact it sat at 17.7 mm, 0.31 Δx into the floor."""
+    times, shares, heights = fresh(_dropped, 2000.0, 0.3, every=0.1)
+    dx = WIDTH / 16
+    report("projection, heavy cube", centre_mm=(heights * 1e3).round(2).tolist(), rest_mm=SIDE / 2 * 1e3)
+    assert heights[0] < 0.06  # under the surface within 0.1 s
+    assert np.all(np.abs(heights[1:] - SIDE / 2) < 0.1 * dx)
+
+
+def _scene(**kw):
+    scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=8, pressure="projection", **kw)
+    scene.add_particles(Box((0, 0, 0), (0.1, 0.1, 0.04)), M.WATER, name="water")
+    return scene
+
+
+def test_projection_refuses_what_it_does_not_handle_by_name():
+    """Each unsupported part is named in the error, before anything is compiled."""
+    with pytest.raises(ValueError, match="pressure must be 'state'"):
+        fl.Scene(pressure="incompressible")
+    with pytest.raises(ValueError, match="0 rigid bodies"):
+        _scene().build()
+    scene = _scene()
+    scene.add_particles(Box((0.03, 0.03, 0.05), (0.06, 0.06, 0.08)), M.Rigid("r", density=500.0), name="cube")
+    with pytest.raises(ValueError, match="gradients"):
+        scene.build(requires_grad=True)
+    scene.add_particles(Box((0.07, 0.07, 0.05), (0.09, 0.09, 0.07)), M.Elastic("jelly", density=500.0,
+                                                                                shear_modulus=1e4, lame_lambda=1e4),
+                        name="jelly")
+    with pytest.raises(ValueError, match=r"solids other than rigid bodies \(jelly\)"):
+        scene.build()
+    scene = _scene(jbar=True)
+    scene.add_particles(Box((0.03, 0.03, 0.05), (0.06, 0.06, 0.08)), M.Rigid("r", density=500.0), name="cube")
+    with pytest.raises(ValueError, match="jbar"):
+        scene.build()
