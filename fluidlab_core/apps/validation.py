@@ -249,9 +249,9 @@ def floating_cube_sim(res: int, body, liquid, drop: float | None = 0.01, width: 
     return scene.build(), scene
 
 
-def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, drop: float = 0.01,
+def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, drop: float | None = 0.01,
                   width: float = 0.12, level: float = 0.06, side: float = 0.04, every: float = 0.05,
-                  body=None, liquid=None, progress=None) -> dict:
+                  body=None, liquid=None, progress=None, substep_factor: float = 1.0, **scene_options) -> dict:
     """A cube of `side` and `density` (a rigid body unless `body`, a material, is given) dropped from `drop`
     above the surface of `level` of water (`liquid`, default the catalogue's) in a closed tank `width` wide and
     0.12 m tall, `res` cells across, the stable substep count. Every `every` seconds: the cube's lowest face
@@ -259,22 +259,27 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
     x or y) and the share of its particles below that surface (`share`), both against the 99th percentile of the
     far field's particle heights (`submerged`), and the share of its volume below the surface its liquid's
     volume fills the tank to (`volume_share`, `submerged_by_volume`: the measure to judge it by, since the
-    percentile reads a disturbed surface high). progress(t, fraction) if given."""
+    percentile reads a disturbed surface high). progress(t, fraction) if given. drop None starts the cube at
+    rest at Archimedes' depth (floating_cube_sim); substep_factor and scene_options (e.g. pressure="projection")
+    as there."""
     from fluidlab_core import materials as M
 
     liquid = liquid or M.WATER
     body = body or M.Rigid(f"rigid_{density:g}", density=density)
-    sim, scene = floating_cube_sim(res, body, liquid, drop, width, level, side)
+    sim, scene = floating_cube_sim(res, body, liquid, drop, width, level, side, substep_factor=substep_factor,
+                                   **scene_options)
     c = width / 2
     dx, s = width / res, scene.particle_spacing
     times, fractions, shares, volume_shares = [], [], [], []
     n = max(1, int(round(every / scene.dt)))
+    waters = [h for h in sim.handles if h != "cube"]  # one body per block of liquid (floating_cube_sim)
     while sim.time < seconds - 1e-9:
         sim.step(n=n)
         x_cube = sim.positions("cube")
-        fraction, share, _ = submerged(sim.positions("water"), x_cube, (c, c), side, dx, s)
-        volume_share, _ = submerged_by_volume(float(sim.volumes("water").sum()), x_cube, sim.volumes("cube"),
-                                              width * width)
+        x_water = np.concatenate([sim.positions(h) for h in waters])
+        fraction, share, _ = submerged(x_water, x_cube, (c, c), side, dx, s)
+        volume = sum(float(sim.volumes(h).sum()) for h in waters)
+        volume_share, _ = submerged_by_volume(volume, x_cube, sim.volumes("cube"), width * width)
         times.append(sim.time)
         fractions.append(fraction)
         shares.append(share)

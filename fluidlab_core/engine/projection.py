@@ -9,7 +9,7 @@ is the unknown of a Poisson problem on the MPM grid, and the body's rigid veloci
 same solve (monolithic, after Batty, Bertails & Bridson 2007, "A fast variational framework for accurate
 solid-fluid coupling"): the body's push is the adjoint of its wall's flux, so that the coupling does no net work.
 
-Per substep (FastSolver.step):
+Per substep (FastSolver.projected_substep):
     P2G           the liquid's F stays I (its stress keeps only its deviatoric, viscous part); the body carries no
                   stress; the liquid field's v* = mv/m + Δt g at every node (no walls yet), and v⁰ = mv/m (AFLIP)
     classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
@@ -42,7 +42,7 @@ body's. The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q
 −½ Δq·M Δq ≤ 0.
 
 Position correction (after Kugelstadt et al. 2019's density projection on positions): a FLIP liquid under a
-velocity projection packs (8-14 % of its volume in 2 s): with q = 0 at the free surface and Neumann at walls and
+velocity projection packs (8-14 % of its volume in 2 s): with ψ = 0 at the free surface and Neumann at walls and
 body, −∇²ψ = φ − 1 at liquid nodes packed beyond 1.02, or loosened below 0.98 away from the surface, and each liquid
 particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles, adds no velocity.
 
