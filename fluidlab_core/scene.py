@@ -103,7 +103,7 @@ class Scene:
         particle's volume change by its equation of state) or "projection" (incompressible: the pressure from a
         Poisson solve on the grid, with one rigid body's velocity as an unknown of the same solve, so that a body
         floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids of one
-        density and at most one rigid body, without tools, statics, emitters, gas or other solids for now; its
+        density and exactly one rigid body, without tools, statics, emitters, gas or other solids for now; its
         flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
         self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
