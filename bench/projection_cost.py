@@ -74,8 +74,7 @@ def main():
               ("projection: classify and right-hand side", lambda st: (proj.classify(), proj.rhs(), proj.mic0())),
               ("projection: pressure CG", lambda st: proj.solve(proj.iterations)),
               ("projection: correction and faces", lambda st: (proj.body_impulse(), proj.correct(), proj.faces())),
-              ("projection: position correction CG", lambda st: (proj._packing_rhs(), proj.solve(proj.correction_iterations),
-                                                                  proj._packing_displacement())),
+              ("projection: position correction", lambda st: proj.position_correction()),
               ("G2P", lambda st: solver.projection_g2p_kernel(st)),
               ("displace, rigid projection, push", lambda st: (proj.displace(), solver.rigid.forward(st, 0),
                                                                proj.push(st)))]
