@@ -223,7 +223,8 @@ def floating_cube_sim(res: int, body, liquid, drop: float | None = 0.01, width: 
                       side: float = 0.04, lift: float = 0.0, substep_factor: float = 1.0, **scene_options):
     """(simulator, scene) of floating_cube's set-up: `level` of `liquid` in a closed tank `width` wide and 0.12 m
     tall, `res` cells across, a cube of `side` of material `body` centred over it with its bottom `drop` above
-    the surface, or (drop None) started at Archimedes' depth + `lift` with the liquid carved round it; particles
+    the surface, or (drop None) started at Archimedes' depth + `lift` with the liquid carved round it (and over it,
+    when that puts it under the surface; lift = −(the depth) stands it on the floor); particles
     named "water" (the liquid, one body per block) and "cube"; the stable substep count × substep_factor.
     scene_options go to fl.Scene (e.g. contact_fill)."""
     import fluidlab_core as fl
@@ -240,6 +241,9 @@ def floating_cube_sim(res: int, body, liquid, drop: float | None = 0.01, width: 
         blocks = [((0, 0, 0), (width, width, bottom)), ((0, 0, bottom), (lo, width, level)),
                   ((hi, 0, bottom), (width, width, level)), ((lo, 0, bottom), (hi, lo, level)),
                   ((lo, hi, bottom), (hi, width, level))]
+        if bottom + side < level - 1e-9:  # started under the surface: the liquid over its top face too
+            blocks.append(((lo, lo, bottom + side), (hi, hi, level)))
+        blocks = [blk for blk in blocks if blk[1][2] - blk[0][2] > 1e-9]  # none under a cube on the floor
     for i, (a, b) in enumerate(blocks):
         scene.add_particles(Box(a, b), liquid, name="water" if i == 0 else f"water{i}")
     scene.add_particles(Box((c - side / 2, c - side / 2, bottom), (c + side / 2, c + side / 2, bottom + side)),
