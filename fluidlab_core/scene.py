@@ -103,8 +103,9 @@ class Scene:
         particle's volume change by its equation of state) or "projection" (incompressible: the pressure from a
         Poisson solve on the grid, with one rigid body's velocity as an unknown of the same solve, so that a body
         floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids of one
-        density and exactly one rigid body, without tools, statics, emitters, gas or other solids for now; its
-        flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
+        density and exactly one rigid body, without tools, statics, emitters, gas or other solids for now (a
+        liquid's bulk viscosity or damping, which act on its pressure, are then dropped: the projection sets the
+        pressure; its shear viscosity stays); its flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
         self.lower, self.upper = _vec3("lower", lower), _vec3("upper", upper)
         if not np.all(self.lower < self.upper):
@@ -504,11 +505,12 @@ class Scene:
             height = float(self.upper[2] - self.lower[2])
             v_tools = max((t.max_speed for t in self.tools), default=0.0)
             v_max = max(v0, v_tools) + math.sqrt(2.0 * float(np.linalg.norm(self.gravity)) * height)
+        waves = mats
         if self.pressure == "projection":
             # the projection holds the liquid incompressible and a rigid body carries no stress: neither's sound
-            # speed limits the substep, the flow's CFL does
-            mats = {k: m for k, m in mats.items() if not (m.is_liquid or isinstance(m, M.Rigid))}
-        stiffest = max(mats.values(), key=lambda m: m.wave_speed(), default=None)
+            # speed limits the substep, the flow's CFL does (a liquid's shear viscosity still does, below)
+            waves = {k: m for k, m in mats.items() if not (m.is_liquid or m.is_rigid)}
+        stiffest = max(waves.values(), key=lambda m: m.wave_speed(), default=None)
         c = stiffest.wave_speed() if stiffest else 0.0
         limits = {"dx": self.dx, "v_max": v_max, "wave_speed": c,
                   "stiffest": stiffest.name if stiffest else None,
@@ -516,6 +518,8 @@ class Scene:
                   "viscous_dt": math.inf, "viscous_material": None}
         for m in mats.values():
             eta_total = m.viscosity + m.bulk_viscosity  # shear and bulk: both diffuse momentum explicitly
+            if self.pressure == "projection" and m.is_liquid:
+                eta_total = m.viscosity  # the projection replaces the isotropic part of the stress
             if eta_total > 0:
                 dt_v = m.density * self.dx ** 2 / (6.0 * eta_total)
                 if dt_v < limits["viscous_dt"]:
@@ -658,10 +662,15 @@ class Scene:
             why.append("emitters")
         if self.gas is not None:
             why.append("gas")
-        liquids = {b.handle.material.density for b in self.bodies if b.handle.material.is_liquid}
+        from fluidlab_core.engine import constitutive
+
+        def liquid(m):  # a liquid by its material and by its constitutive model (the solver's test)
+            return m.is_liquid and constitutive.get(m.model).fluid
+
+        liquids = {b.handle.material.density for b in self.bodies if liquid(b.handle.material)}
         others = sorted({b.handle.material.name for b in self.bodies
-                         if not b.handle.material.is_liquid and not isinstance(b.handle.material, M.Rigid)})
-        rigid = [b.handle.name for b in self.bodies if isinstance(b.handle.material, M.Rigid)]
+                         if not liquid(b.handle.material) and not b.handle.material.is_rigid})
+        rigid = [b.handle.name for b in self.bodies if b.handle.material.is_rigid]
         if others:
             why.append(f"solids other than rigid bodies ({', '.join(others)})")
         if len(rigid) != 1:

@@ -400,11 +400,13 @@ class Simulator:
         return rest * np.linalg.det(self.deformation_gradients(h))
 
     def stresses(self, h=None) -> np.ndarray:
-        """(N, 3, 3) Cauchy stress σ of each particle (Pa), from its constitutive model at its current F and C."""
+        """(N, 3, 3) Cauchy stress σ of each particle (Pa), from its constitutive model at its current F and C. With
+        Scene(pressure="projection") a liquid's pressure is the projection's, on the grid, and not in these (its F
+        stays I: only its viscous part shows)."""
         return self._rows(self.solver.stresses(self.state), h)
 
     def pressures(self, h=None) -> np.ndarray:
-        """Cauchy pressure −tr(σ)/3 of each particle (Pa)."""
+        """Cauchy pressure −tr(σ)/3 of each particle (Pa), from `stresses` (so not the projection's pressure)."""
         return -np.trace(self.stresses(h), axis1=1, axis2=2) / 3.0
 
     def particle_colors(self) -> np.ndarray:
@@ -470,6 +472,9 @@ class Simulator:
         solids' F). Meant for a state at rest with gravity along an axis; returns the largest 1 − J given."""
         from fluidlab_core.engine import constitutive
 
+        if self.model.projection:
+            raise ValueError("start_hydrostatic compresses a weakly compressible liquid; with "
+                             "Scene(pressure='projection') the liquid is incompressible and starts at rest as it is")
         g = np.asarray(self.model.gravity, dtype=np.float64)
         axis = int(np.argmax(np.abs(g)))
         if not np.any(g) or np.count_nonzero(g) != 1:

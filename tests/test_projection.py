@@ -56,8 +56,9 @@ def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
 
     The default coupling (pressure="state") fails this: 0.403 from 0.5 s to 1.5 s in the same set-up (measured
     2026-11-29), then sinking; its strict expected failure was this file's predecessor in
-    tests/test_physics_solids.py. Measured here (2026-12-05, two threads): 0.529 in the first second, 0.478 in the
-    second (the bench's, one thread, sampled every 0.1 s: 0.545, 0.475). Over 10 s (bench/buoyancy_3d.py rigid std 10
+    tests/test_physics_solids.py. Measured here (2026-12-05): 0.532 in the first second and 0.473 in the second on
+    one thread (0.529 and 0.478 on two before the body's J was held at 1; the bench's, one thread, sampled every
+    0.1 s: 0.545, 0.475). Over 10 s (bench/buoyancy_3d.py rigid std 10
     --res 16 --drop 0.01 --substep-factor 2 --pressure projection) the per-second means stay within ± 0.03 after the
     landing second (bench/results/buoyancy_3d.txt)."""
     times, shares, heights, sim = fresh(_dropped, 500.0, 2.0)
@@ -95,8 +96,13 @@ def _scene(**kw):
     return scene
 
 
+def _cube(scene, name="cube", lo=(0.03, 0.03, 0.05), side=0.03, density=500.0):
+    scene.add_particles(Box(lo, tuple(v + side for v in lo)), M.Rigid(f"r_{name}", density=density), name=name)
+    return scene
+
+
 def test_projection_refuses_what_it_does_not_handle_by_name():
-    """Each unsupported part is named in the error, before anything is compiled."""
+    """Each unsupported part is named in the error that build() raises (before any kernel is compiled)."""
     with pytest.raises(ValueError, match="pressure must be 'state'"):
         fl.Scene(pressure="incompressible")
     with pytest.raises(ValueError, match="0 rigid bodies"):
@@ -114,3 +120,21 @@ def test_projection_refuses_what_it_does_not_handle_by_name():
     scene.add_particles(Box((0.03, 0.03, 0.05), (0.06, 0.06, 0.08)), M.Rigid("r", density=500.0), name="cube")
     with pytest.raises(ValueError, match="jbar"):
         scene.build()
+    with pytest.raises(ValueError, match=r"tools \(stick\)"):
+        scene = _cube(_scene())
+        scene.add_tool(fl.Cylinder((0, 0, 0), 0.005, 0.03), pose=(0.08, 0.08, 0.07, 0, 0, 0, 1), name="stick")
+        scene.build()
+    with pytest.raises(ValueError, match=r"statics \(ledge\)"):
+        scene = _cube(_scene())
+        scene.add_static(Box((0.0, 0.0, 0.0), (0.02, 0.1, 0.02)), name="ledge")
+        scene.build()
+    with pytest.raises(ValueError, match=r"2 rigid bodies \(a, b\)"):
+        _cube(_cube(_scene(), "a"), "b", lo=(0.065, 0.065, 0.05)).build()
+    with pytest.raises(ValueError, match=r"liquids of different densities \(1000, 1200 kg/m³\)"):
+        scene = _cube(_scene())
+        scene.add_particles(Box((0, 0, 0.04), (0.1, 0.02, 0.05)),
+                            M.NewtonianLiquid("brine", density=1200.0, bulk_modulus=2e6), name="brine")
+        scene.build()
+    with pytest.raises(ValueError, match="a scene without liquid"):
+        scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=8, pressure="projection")
+        _cube(scene).build()

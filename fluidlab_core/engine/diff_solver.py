@@ -70,6 +70,8 @@ class DiffSolver(Solver):
             raise ValueError("the differentiable solver transfers by APIC: AFLIP (Model.flip > 0) has no backward")
         if model.has_jbar:
             raise ValueError("the J-bar average (Model.jbar) has no backward in the differentiable solver")
+        if model.projection:
+            raise ValueError("the liquid projection (Scene(pressure='projection')) has no differentiable solver yet")
         super().__init__(model, scatter_copies, needs_grad=True)
         real, n = model.real, model.n_particles
         self.n_slots = int(n_slots)

@@ -11,7 +11,7 @@ solid-fluid coupling"): the body's push is the adjoint of its wall's flux, so th
 
 Per substep (FastSolver.projected_substep):
     P2G           the liquid's F stays I (its stress keeps only its deviatoric, viscous part); the body carries no
-                  stress; the liquid field's v* = mv/m + Δt g at every node (no walls yet), and v⁰ = mv/m (AFLIP)
+                  stress (and keeps J = 1: rigid.py); the liquid field's v* = mv/m + Δt g at every node (no walls yet), and v⁰ = mv/m (AFLIP)
     classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
                   (p = 0), WALL (beyond the walls' rows), BSOLID (inside the body, deeper than a cell; moving with it)
     solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started)
@@ -42,9 +42,10 @@ body's. The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q
 −½ Δq·M Δq ≤ 0.
 
 Position correction (after Kugelstadt et al. 2019's density projection on positions): a FLIP liquid under a
-velocity projection packs (8-14 % of its volume in 2 s): with ψ = 0 at the free surface and Neumann at walls and
-body, −∇²ψ = φ − 1 at liquid nodes packed beyond 1.02, or loosened below 0.98 away from the surface (solved to a
-relative residual of 1e-3), and each liquid particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles,
+velocity projection packs (8-14 % of its volume in 2 s): with ψ = 0 at the free surface, Neumann at the walls, and
+the pressure solve's own matrix (so the body's faces count by their open share, and the body's rank-6 term treats
+it as free to give way; it is not moved), −∇²ψ = φ − 1.02 at liquid nodes packed beyond 1.02, or φ − 0.98 where
+loosened below 0.98 away from the surface (solved to a relative residual of 1e-3), and each liquid particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles,
 adds no velocity.
 
 Units: p in Pa, velocities in m/s, ψ in m², q's angular part in rad/s. Float64 in the solve whatever the state's
@@ -565,9 +566,14 @@ class LiquidProjection:
                 rz += self.r[I] * self.z[I]
         return rz
 
+    @ti.kernel
+    def _zero(self):
+        for I in ti.grouped(self.kind):
+            self.p[I] = 0.0
+
     def solve(self, iterations: list, tol: float = TOL):
         """Preconditioned CG on (A_a + Δx B M⁻¹ Bᵀ) p = b from the p held (warm start) to the relative residual
-        `tol`; appends its iterations."""
+        `tol`; appends its iterations. b = 0 gives p = 0 (not the warm start)."""
         self._start()
         rz = self._precond()
         self._direction(0.0)  # d = z
@@ -584,6 +590,8 @@ class LiquidProjection:
                 rz_new = self._precond()
                 self._direction(rz_new / rz)
                 rz = rz_new
+        else:
+            self._zero()
         iterations.append(it)
 
     # --- the correction -----------------------------------------------------------------------------------
@@ -748,7 +756,8 @@ class LiquidProjection:
                 d = ti.Vector.zero(self.model.real, 3)
                 for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
                     d += w[i][0] * w[j][1] * w[k][2] * self.disp[base + ti.Vector([i, j, k])]
-                self.solver.rigid.x_g[p] = xg + a * d
+                x_new, _ = grid.clamp_to_walls(self.model, xg + a * d, ti.Vector.zero(self.model.real, 3))
+                self.solver.rigid.x_g[p] = x_new
 
     # --- the body -------------------------------------------------------------------------------------------
     @ti.kernel

@@ -45,7 +45,7 @@ its depth at balanced force: what is left is the liquid's pressure around the bo
 
 Walls' contact (scenes with `Scene(pressure="projection")`, where a rigid body carries no stress and so cannot be
 held up by the floor's nodes pressing into its particles): after the body's v and ω are known, each body particle
-within its spacing h of a domain wall is a contact point at r = x − c, normal n into the domain, gap
+whose surface (h/2 beyond it, h its spacing) lies within h of a domain wall is a contact point at r = x − c, normal n into the domain, gap
 g = (x − wall)·n − h/2 (the body's surface half a spacing beyond the particle). Projected Gauss–Seidel over the points
 (CONTACT_ITERS sweeps; Catto 2005, "Iterative dynamics with temporal coherence") applies normal impulses λ ≥ 0,
 accumulated per point, so that each point's normal velocity v_n = (v + ω × r)·n is at least
@@ -207,6 +207,8 @@ class RigidProjection:
             vp = self.momentum[own] / self.rigid.body_mass[own] + omega.cross(r)
             J = self.F_model[p].determinant() * (1.0 + self.model.dt * self.C_g[p].trace())
             J = ti.min(ti.max(J, 0.5), 2.0)
+            if ti.static(self.wall_contact):  # with the liquid projection the body carries no stress: J stays 1
+                J = 1.0
             Fp = R * ti.pow(J, 1.0 / 3.0)
             Cp = ti.Matrix([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]])
         for b in ti.static(range(len(self.rigid.sdfs))):
