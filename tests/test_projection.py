@@ -12,9 +12,9 @@ from tests.conftest import fresh, report
 
 WIDTH, SIDE = 0.12, 0.04
 # How far the cube's centre in a run from a restored state (Simulator.set_state) may part from the original's over
-# 0.1 s (m). Measured from 2 s into the drop at 16 cells (2026-12-05): 3.0e-8 m on one thread and 1.2e-7 m on two
-# (the solves' warm starts differ, within their tolerances, and two threads sum in varying order); with the reset
-# leaving the body's last push in place (a bug it must not have) 9.9e-7 m.
+# 0.1 s (m). Measured from 2 s into the drop at 16 cells (2026-12-05, the position correction's band at 0.5 %):
+# 1.6e-7 m on one thread and 9.7e-8 m on two (the solves' warm starts differ, within their tolerances); with the
+# reset leaving the body's last push in place (a bug it must not have) 9.9e-7 m (band 2 %).
 RESTORED_M = 4e-7
 
 
@@ -56,9 +56,8 @@ def test_light_cube_dropped_onto_water_floats_at_archimedes_depth():
 
     The default coupling (pressure="state") fails this: 0.403 from 0.5 s to 1.5 s in the same set-up (measured
     2026-11-29), then sinking; its strict expected failure was this file's predecessor in
-    tests/test_physics_solids.py. Measured here (2026-12-05): 0.532 in the first second and 0.473 in the second on
-    one thread (0.529 and 0.478 on two before the body's J was held at 1; the bench's, one thread, sampled every
-    0.1 s: 0.545, 0.475). Over 10 s (bench/buoyancy_3d.py rigid std 10
+    tests/test_physics_solids.py. Measured here (2026-12-05, one thread): 0.528 in the first second and 0.480 in the
+    second (the bench's, sampled every 0.1 s: 0.544, 0.480). Over 10 s (bench/buoyancy_3d.py rigid std 10
     --res 16 --drop 0.01 --substep-factor 2 --pressure projection) the per-second means stay within ± 0.03 after the
     landing second (bench/results/buoyancy_3d.txt)."""
     times, shares, heights, sim = fresh(_dropped, 500.0, 2.0)

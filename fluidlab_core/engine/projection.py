@@ -44,8 +44,8 @@ body's. The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q
 Position correction (after Kugelstadt et al. 2019's density projection on positions): a FLIP liquid under a
 velocity projection packs (8-14 % of its volume in 2 s): with ψ = 0 at the free surface, Neumann at the walls, and
 the pressure solve's own matrix (so the body's faces count by their open share, and the body's rank-6 term treats
-it as free to give way; it is not moved), −∇²ψ = φ − 1.02 at liquid nodes packed beyond 1.02, or φ − 0.98 where
-loosened below 0.98 away from the surface (solved to a relative residual of 1e-3), and each liquid particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles,
+it as free to give way; it is not moved), −∇²ψ = φ − 1.005 at liquid nodes packed beyond 1.005, or φ − 0.995 where
+loosened below 0.995 away from the surface (solved to a relative residual of 1e-3), and each liquid particle moves by ½ Σ_i w_ip (−∇ψ)_i per substep. It moves particles,
 adds no velocity.
 
 Units: p in Pa, velocities in m/s, ψ in m², q's angular part in rad/s. Float64 in the solve whatever the state's
@@ -72,7 +72,11 @@ THETA_MIN = 0.1  # the least share θ of the way from a liquid node to an air no
 OPEN_MIN = 0.5  # a shell node whose faces are open by less than this (faces, all six together) is the body's
 SUB_BOXES = 4  # sub-boxes per axis for a face's solid share where the body's surface may cross its box
 POSITION_CORRECTION = 0.5  # the share of the position correction's displacement applied per substep
-PACKING_BAND = 0.02  # no correction within 1 ± this fill
+# no position correction within 1 ± this fill. 0.02 until a zero right-hand side gave ψ = 0 instead of re-applying
+# the last ψ (b6f60d7): the liquid could then pack by up to 2 % unchecked, and a dropped 800 kg/m³ cube sank to 0.835
+# of its volume under (Archimedes 0.80) by its eighth second at 16 cells. At 0.005: 0.788-0.808, and 0.476-0.511 for
+# a 500 kg/m³ cube, over seconds 1-10 (bench/results/buoyancy_3d.txt, 2026-12-05).
+PACKING_BAND = 0.005
 MIC_TAU, MIC_SIGMA = 0.97, 0.25  # MIC(0) (Bridson, "Fluid Simulation for Computer Graphics", 2nd ed., §5.4)
 
 
