@@ -513,8 +513,12 @@ class SimNode(Node):
             if cancel_at is not None and (stop is None or not proc.is_alive()
                                           or time.monotonic() - cancel_at > self.cancel_timeout):
                 if proc.is_alive():
+                    # terminated, and reaped beside the goal: a loaded machine can take a second or more to end a
+                    # process, which the cancel's reply must not wait for (nothing it would save is kept)
                     proc.terminate()
-                proc.join(2.0)
+                    threading.Thread(target=proc.join, args=(10.0,), daemon=True, name="reap-optimiser").start()
+                else:
+                    proc.join(2.0)
                 return "cancelled", None
             try:
                 msg = out.get(timeout=0.05)
