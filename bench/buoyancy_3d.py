@@ -107,15 +107,12 @@ def main():
                                               side=b, lift=args.lift, substep_factor=args.substep_factor, **kw)
     c = width / 2
     dx, s = width / args.res, scene.particle_spacing
-    waters = [h for h in sim.handles if h != "cube"]
     t0, rows, series = time.time(), [], []
     while sim.time < args.seconds - 1e-9:
         sim.step(n=int(round(args.every / scene.dt)))
         xc = sim.positions("cube")
-        depth, share, surface = validation.submerged(np.concatenate([sim.positions(h) for h in waters]), xc,
-                                                     (c, c), b, dx, s)
-        volume = sum(float(sim.volumes(h).sum()) for h in waters)
-        vshare, vsurface = validation.submerged_by_volume(volume, xc, sim.volumes("cube"), width * width)
+        vshare, vsurface, x_water = validation.cube_volume_share(sim, width)
+        depth, share, surface = validation.submerged(x_water, xc, (c, c), b, dx, s)
         series.append((sim.time, depth, share, vshare))
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}"
                     f" {vshare:>9.3f} {vsurface * 1e3:>10.1f}")

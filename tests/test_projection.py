@@ -19,10 +19,7 @@ RESTORED_M = 4e-7
 
 
 def _volume_share(sim):
-    waters = [h for h in sim.handles if h != "cube"]
-    volume = sum(float(sim.volumes(h).sum()) for h in waters)
-    share, _ = validation.submerged_by_volume(volume, sim.positions("cube"), sim.volumes("cube"), WIDTH * WIDTH)
-    return share
+    return validation.cube_volume_share(sim, WIDTH)[0]
 
 
 def _dropped(density, seconds, every=0.05):

@@ -219,6 +219,15 @@ def submerged_by_volume(liquid_volume: float, x_body, body_volumes, area: float)
     return below(h) / float(v.sum()), h
 
 
+def cube_volume_share(sim, width: float = 0.12):
+    """(share, surface m, the liquid's positions) of floating_cube_sim's set-up: submerged_by_volume of the cube
+    against every block of liquid (the particle bodies other than "cube") in the tank `width` across."""
+    waters = [h for h in sim.handles if h != "cube"]
+    volume = sum(float(sim.volumes(h).sum()) for h in waters)
+    share, surface = submerged_by_volume(volume, sim.positions("cube"), sim.volumes("cube"), width * width)
+    return share, surface, np.concatenate([sim.positions(h) for h in waters])
+
+
 def floating_cube_sim(res: int, body, liquid, drop: float | None = 0.01, width: float = 0.12, level: float = 0.06,
                       side: float = 0.04, lift: float = 0.0, substep_factor: float = 1.0, **scene_options):
     """(simulator, scene) of floating_cube's set-up: `level` of `liquid` in a closed tank `width` wide and 0.12 m
@@ -276,14 +285,11 @@ def floating_cube(res: int = 16, density: float = 500.0, seconds: float = 2.0, d
     dx, s = width / res, scene.particle_spacing
     times, fractions, shares, volume_shares = [], [], [], []
     n = max(1, int(round(every / scene.dt)))
-    waters = [h for h in sim.handles if h != "cube"]  # one body per block of liquid (floating_cube_sim)
     while sim.time < seconds - 1e-9:
         sim.step(n=n)
         x_cube = sim.positions("cube")
-        x_water = np.concatenate([sim.positions(h) for h in waters])
+        volume_share, _, x_water = cube_volume_share(sim, width)
         fraction, share, _ = submerged(x_water, x_cube, (c, c), side, dx, s)
-        volume = sum(float(sim.volumes(h).sum()) for h in waters)
-        volume_share, _ = submerged_by_volume(volume, x_cube, sim.volumes("cube"), width * width)
         times.append(sim.time)
         fractions.append(fraction)
         shares.append(share)
