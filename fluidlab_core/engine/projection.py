@@ -14,6 +14,7 @@ Per substep (FastSolver.projected_substep):
                   stress (and keeps J = 1: rigid.py); the liquid field's v* = mv/m + Δt g at every node (no walls yet), and v⁰ = mv/m (AFLIP)
     classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
                   (p = 0), WALL (beyond the walls' rows), BSOLID (inside the body, deeper than a cell; moving with it)
+    enclose_air   an air pocket the body borders that no path of air joins to the top is liquid (below)
     solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started)
     correct       u = u* − Δt/ρ ∇p on the faces; q = q* + Δt M⁻¹ Q
     G2P           the liquid's particles gather u and C from the faces (a staggered grid), with AFLIP
@@ -38,7 +39,12 @@ so that a linear pressure gives the surface's pressure, not the node's (held sti
 gets 1.020 of its weight at 16 cells and 1.004 at 32; 1.055 and 1.009 without). A shell node inside the body but
 within a cell of its surface is liquid if it borders the liquid, unless its faces are open by less than half a
 face in all (its pressure would be ill-determined: such nodes threw the liquid out at 2-7 m/s): then it is the
-body's. The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q·q* + ½ Δq·M Δq, sum to
+body's. An air pocket that
+no path of air nodes joins to the air at the top and that the body borders (a node within a cell of its surface)
+is a vacuum, not air: its nodes are liquid unknowns moving with the body. The body's particles keep the liquid
+out of the gap under a body on the floor, and with p = 0 there a buoyant cube stood on the floor stayed there (the
+liquid's pressure pressed its top and never reached its bottom); now it lifts off (tests/test_projection.py).
+The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q·q* + ½ Δq·M Δq, sum to
 −½ Δq·M Δq ≤ 0.
 
 Position correction (after Kugelstadt et al. 2019's density projection on positions): a FLIP liquid under a
@@ -128,6 +134,7 @@ class LiquidProjection:
         self.minv_m = ti.field(f64, shape=())  # 1/m
         self.force = ti.Vector.field(3, real, shape=())  # the push's force (N) and torque (N m), from the host
         self.torque = ti.Vector.field(3, real, shape=())
+        self.enclosed = ti.field(ti.i8, shape=shape)  # 1 at an enclosed air node beside the body (enclose_air)
         self.iterations = []  # the pressure solve's CG iterations per substep
         self.correction_iterations = []  # the position correction's
         self.primed = False
@@ -340,6 +347,53 @@ class LiquidProjection:
                 self.kind[I] = ti.cast(BSOLID, ti.i8)
                 xn = ti.Vector(model.origin) + I * model.dx
                 self.vs[I] = ti.cast(vb + wb.cross(xn - c), ti.f64)
+
+    def enclose_air(self):
+        """Air nodes that no path of air nodes joins to the air at the top of the domain, in a pocket beside the
+        body (a node of it within a cell of the body's surface), become liquid unknowns moving with the body (the
+        liquid field's velocity where it has mass). Such a pocket is a vacuum, not air: the body's particles
+        exclude the liquid from the gap under a body on the floor, and with p = 0 there the liquid's pressure
+        never reached the body's bottom while the pressure on its top held it down, so that a buoyant body never
+        lifted off the floor; a real one lifts off as water seeps under it. Pockets away from the body (a splash's
+        void in the liquid) stay air and close. Nothing is changed where no air reaches the top (a full tank)."""
+        from scipy import ndimage
+
+        kind = self.kind.to_numpy()
+        air = kind == AIR
+        if not air.any():
+            return
+        labels, n = ndimage.label(air)  # face-connected components (6-connectivity)
+        g = np.asarray(self.model.gravity, dtype=float)
+        if n < 2 or not np.any(g):
+            return
+        axis = int(np.argmax(np.abs(g)))
+        open_rows = np.nonzero(np.any(np.moveaxis(kind != WALL, axis, 0), axis=tuple(range(1, kind.ndim))))[0]
+        top = open_rows.max() if g[axis] < 0 else open_rows.min()  # the highest row inside the walls
+        top_labels = np.unique(np.take(labels, top, axis=axis))
+        top_labels = top_labels[top_labels > 0]
+        if top_labels.size == 0:
+            return
+        near = air & (self.sdf.to_numpy() < self.model.dx)
+        pockets = np.setdiff1d(np.unique(labels[near]), top_labels)
+        if pockets.size == 0:
+            return
+        self.enclosed.from_numpy(np.isin(labels, pockets).astype(np.int8))
+        self._wet_enclosed()
+
+    @ti.kernel
+    def _wet_enclosed(self):
+        s = self.solver
+        model = self.model
+        R, c, valid = self._body()
+        for I in ti.grouped(self.kind):
+            if self.enclosed[I] == 1:
+                self.enclosed[I] = ti.cast(0, ti.i8)
+                xn = ti.Vector(model.origin) + I * model.dx
+                v = self.q_lin[None] + self.q_ang[None].cross(ti.cast(xn - c, ti.f64))  # q* at the node
+                if s.grid_m_f[I] > model.mass_floor:
+                    v = ti.cast(grid.walls(model, xn, s.grid_v_f[I]), ti.f64)
+                self.kind[I] = ti.cast(LIQ, ti.i8)
+                self.vs[I] = v
 
     @ti.kernel
     def rhs(self):
@@ -790,6 +844,7 @@ class LiquidProjection:
             self.solver.rigid.prime(state)
             self.primed = True
         self.classify()
+        self.enclose_air()
         self.rhs()
         self.mic0()
         self.solve(self.iterations)
