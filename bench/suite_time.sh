@@ -6,7 +6,9 @@
 # cold: an empty cache (TI_OFFLINE_CACHE_FILE_PATH set to a fresh temporary folder), every kernel compiled.
 # The tests start the command line in subprocesses, which import the installed package, so this tree is installed
 # into .venv first (pip install --no-deps .). Writes bench/results/test_durations_<mode>_cpu.txt: a header (date,
-# commit, cores, mode, exit status, wall time), pytest's summary line, the 40 slowest items and any FAILED lines.
+# commit, cores, mode, exit status, wall time), pytest's summary line, the 40 slowest items and any FAILED lines;
+# with `cold`, also tests/file_seconds.json (each file's seconds: the suite queues its files heaviest first by it,
+# tests/conftest.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mode="${1:-warm}"
@@ -26,7 +28,9 @@ log="$tmp/pytest.log"
 .venv/bin/pip install -q --no-deps .
 start=$(date +%s)
 set +e
-.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=40 tests >"$log" 2>&1
+record=()
+[ "$mode" = cold ] && record=(--record-file-seconds)
+.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=40 "${record[@]}" tests >"$log" 2>&1
 rc=$?
 set -e
 end=$(date +%s)

@@ -8,10 +8,20 @@ here unless the caller set it, and inherited by the nodes and command lines the 
 compilation, of simulators too small for the kernels' speed to matter (`bench/fast_compile.py`).
 FLUIDLAB_FAST_COMPILE=0 before the test command runs it as users run by default.
 
+Scheduling: the README's command hands whole files to two processes (pytest-xdist's loadfile). By default xdist
+queues the files with the most tests first, which put the few-but-heavy files (the gas's gradients) last and left
+one process idle for the last ~110 s of a 1398 s run (2026-12-05: 2450 CPU-seconds over two processes). Here the
+files are queued heaviest first instead (longest-processing-time first), by the per-file seconds in
+tests/file_seconds.json, measured from a cold Taichi cache as CI runs it; a file not listed there counts as the
+listed files' median. `bash bench/suite_time.sh cold` refreshes the table (pytest's --record-file-seconds: the
+files a run ran are written at its end, the others kept).
+
 Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid copies, thread counts), skipped on
 CUDA; `cuda` for tests that need a GPU, skipped on the CPU.
 """
+import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,9 +34,34 @@ if TEST_ARCH not in ("cpu", "cuda"):
 os.environ.setdefault("FLUIDLAB_FAST_COMPILE", "1")
 
 
+TESTS = Path(__file__).parent
+FILE_SECONDS = TESTS / "file_seconds.json"  # {file relative to tests/: seconds of its setup, calls and teardown}
+_recorded: dict[str, float] = {}
+_root = [Path.cwd()]  # pytest's rootdir, which node ids are relative to (set by pytest_configure)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--record-file-seconds", action="store_true",
+                     help=f"write each test file's seconds to {FILE_SECONDS} at the end (the order the files are "
+                          "queued in)")
+
+
 def pytest_configure(config):
     config.addinivalue_line("markers", "cpu_only: tests the CPU's own code paths; skipped with FLUIDLAB_TEST_ARCH=cuda")
     config.addinivalue_line("markers", "cuda: needs a CUDA device; run with FLUIDLAB_TEST_ARCH=cuda")
+    _root[0] = Path(config.rootpath)
+    if hasattr(config.option, "loadscopereorder"):  # xdist: keep the heaviest-first order made below
+        config.option.loadscopereorder = False
+
+
+def _test_file(path_or_nodeid) -> str:
+    path = Path(str(path_or_nodeid).split("::")[0])
+    if not path.is_absolute():
+        path = _root[0] / path
+    try:
+        return path.resolve().relative_to(TESTS).as_posix()
+    except ValueError:
+        return path.as_posix()
 
 
 def pytest_collection_modifyitems(config, items):
@@ -35,6 +70,29 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.skip(reason="a CPU code path (FLUIDLAB_TEST_ARCH=cuda)"))
         if TEST_ARCH != "cuda" and "cuda" in item.keywords:
             item.add_marker(pytest.mark.skip(reason="needs CUDA: FLUIDLAB_TEST_ARCH=cuda on a GPU machine"))
+    # the heaviest files first, each file's tests in their own order (module docstring, "Scheduling")
+    seconds = json.loads(FILE_SECONDS.read_text()) if FILE_SECONDS.exists() else {}
+    default = float(np.median(list(seconds.values()))) if seconds else 0.0
+    first: dict[str, int] = {}
+    for i, item in enumerate(items):
+        first.setdefault(_test_file(item.path), i)
+    rank = {id(item): i for i, item in enumerate(items)}
+    items.sort(key=lambda it: (-seconds.get(_test_file(it.path), default), first[_test_file(it.path)], rank[id(it)]))
+
+
+def pytest_runtest_logreport(report):
+    _recorded[_test_file(report.nodeid)] = _recorded.get(_test_file(report.nodeid), 0.0) + report.duration
+
+
+def pytest_sessionfinish(session, exitstatus):
+    config = session.config
+    if config.getoption("--record-file-seconds") and not hasattr(config, "workerinput") and _recorded:
+        table = json.loads(FILE_SECONDS.read_text()) if FILE_SECONDS.exists() else {}
+        table.update({k: round(v, 1) for k, v in _recorded.items()})  # a partial run updates its own files
+        table = dict(sorted(table.items(), key=lambda kv: -kv[1]))
+        tmp = FILE_SECONDS.with_suffix(".tmp")
+        tmp.write_text(json.dumps(table, indent=1) + "\n")
+        tmp.replace(FILE_SECONDS)
 
 
 def init(precision: str = "f32"):
