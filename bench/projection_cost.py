@@ -71,7 +71,9 @@ def main():
     solver = sim.solver
     proj = solver.proj
     stages = [("P2G and grid update", lambda st: solver.projection_p2g_kernel(st)),
-              ("projection: classify and right-hand side", lambda st: (proj.classify(), proj.rhs(), proj.mic0())),
+              ("projection: classify", lambda st: proj.classify()),
+              ("projection: enclosed air (host labels)", lambda st: proj.enclose_air()),
+              ("projection: right-hand side, MIC(0)", lambda st: (proj.rhs(), proj.mic0())),
               ("projection: pressure CG", lambda st: proj.solve(proj.iterations)),
               ("projection: correction and faces", lambda st: (proj.body_impulse(), proj.correct(), proj.faces())),
               ("projection: position correction", lambda st: proj.position_correction()),
