@@ -43,7 +43,8 @@ body's. An air pocket that
 no path of air nodes joins to the air at the top and that the body borders (a node within a cell of its surface)
 is a vacuum, not air: its nodes are liquid unknowns moving with the body. The body's particles keep the liquid
 out of the gap under a body on the floor, and with p = 0 there a buoyant cube stood on the floor stayed there (the
-liquid's pressure pressed its top and never reached its bottom); now it lifts off (tests/test_projection.py).
+liquid's pressure pressed its top and never reached its bottom); now it lifts off at 16 cells
+(tests/test_projection.py), but at 24 cells it only creeps (docs/engine.md, open).
 The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q·q* + ½ Δq·M Δq, sum to
 −½ Δq·M Δq ≤ 0.
 
