@@ -95,10 +95,12 @@ def test_light_cube_on_the_floor_lifts_off_and_rises_to_the_surface():
     a body on the floor (its particles exclude the liquid), and while those nodes read as air at p = 0 the
     liquid's pressure never reached the cube's bottom and the pressure on its top held it down: its centre stayed
     at 20.0 mm over 1 s (2026-12-05). An air pocket that no path of air joins to the free surface and that the body
-    borders is now liquid (LiquidProjection.enclose_air). Measured (2026-12-05): 20.9, 25.4, 46.6, 71.8 mm at
-    0.1-0.4 s (it overshoots, as a buoyant body rising 4 cm does, and bobs about 60 mm; bench/buoyancy_3d.py rigid
-    std 3 --res 16 --raise -0.04 --substep-factor 2 --pressure projection). At 24 cells the cube only creeps
-    (20.1-20.4 mm over 0.8 s), open (docs/engine.md, "Floating bodies: the projection")."""
+    borders is now liquid (LiquidProjection.enclose_air), its nodes without liquid mass keeping their velocity
+    from the last solve. Measured (2026-12-05): 21.7, 34.0, 63.6, 70.4 mm at 0.1-0.4 s (it overshoots, as a
+    buoyant body rising 4 cm does, and bobs about 60 mm; bench/buoyancy_3d.py rigid std 10 --res 16 --raise -0.04
+    --substep-factor 2 --pressure projection: 0.491-0.501 over seconds 1-10). With the pocket nodes taking the
+    body's velocity each substep instead: 20.9, 25.4, 46.6, 71.8 mm here, and at 24 cells the cube rose 0.15 mm
+    and settled back (docs/engine.md, "Floating bodies: the projection")."""
     times, shares, heights, _ = fresh(_dropped, 500.0, 0.4, every=0.1, on_floor=True)
     report("projection, cube on the floor", centre_mm=(heights * 1e3).round(1).tolist(), floats_at_mm=60.0)
     assert heights.max() > 0.05
