@@ -41,10 +41,10 @@ within a cell of its surface is liquid if it borders the liquid, unless its face
 face in all (its pressure would be ill-determined: such nodes threw the liquid out at 2-7 m/s): then it is the
 body's. An air pocket that
 no path of air nodes joins to the air at the top and that the body borders (a node within a cell of its surface)
-is a vacuum, not air: its nodes are liquid unknowns moving with the body. The body's particles keep the liquid
+is a vacuum, not air: its nodes are liquid unknowns, their u* the body's velocity when they join the pocket and
+their own after the last solve from then on. The body's particles keep the liquid
 out of the gap under a body on the floor, and with p = 0 there a buoyant cube stood on the floor stayed there (the
 liquid's pressure pressed its top and never reached its bottom); now it lifts off (tests/test_projection.py).
-A pocket node without liquid mass keeps its velocity from the last solve (enclose_air).
 The work the wall does on the liquid, −Δt Q·q, and the push's, Δt Q·q* + ½ Δq·M Δq, sum to
 −½ Δq·M Δq ≤ 0.
 
@@ -709,10 +709,11 @@ class LiquidProjection:
         for I in ti.grouped(self.kind):
             k = self.kind[I]
             self.was_enclosed[I] = self.enclosed[I]
-            if self.enclosed[I] == 1:
-                self.pocket_v[I] = self.vs[I] - dt / self.rho_w * self._grad(I)
-            if k == LIQ:
-                s.grid_v_f[I] -= ti.cast(dt / self.rho_w * self._grad(I), self.model.real)
+            if k == LIQ:  # (a pocket node is one)
+                du = dt / self.rho_w * self._grad(I)
+                s.grid_v_f[I] -= ti.cast(du, self.model.real)
+                if self.enclosed[I] == 1:
+                    self.pocket_v[I] = self.vs[I] - du
             elif k == AIR and s.grid_m_f[I] > self.model.mass_floor:
                 G = ti.Vector.zero(ti.f64, 3)
                 for d in ti.static(range(3)):
