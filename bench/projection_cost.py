@@ -78,7 +78,7 @@ def main():
               ("projection: correction and faces", lambda st: (proj.body_impulse(), proj.correct(), proj.faces())),
               ("projection: position correction", lambda st: proj.position_correction()),
               ("G2P", lambda st: solver.projection_g2p_kernel(st)),
-              ("displace, rigid projection, push", lambda st: (proj.displace(), solver.rigid.forward(st, 0),
+              ("displace, rigid projection, push", lambda st: (proj.displace(st), solver.rigid.forward(st, 0),
                                                                proj.push(st)))]
     acc = {name: 0.0 for name, _ in stages}
     n_sub = int(round(args.seconds / scene.dt)) * scene.substeps

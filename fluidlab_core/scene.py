@@ -102,8 +102,8 @@ class Scene:
         has the formulas. pressure: the liquids' pressure, "state" (the default: weakly compressible, from each
         particle's volume change by its equation of state) or "projection" (incompressible: the pressure from a
         Poisson solve on the grid, with one rigid body's velocity as an unknown of the same solve, so that a body
-        floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids of one
-        density and exactly one rigid body, without tools, statics, emitters, gas or other solids for now (a
+        floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids (of one
+        density or several) and at most one rigid body, without tools, statics, emitters, gas or other solids for now (a
         liquid's bulk viscosity or damping, which act on its pressure, are then dropped: the projection sets the
         pressure; its shear viscosity stays); its flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
@@ -671,14 +671,12 @@ class Scene:
         others = sorted({b.handle.material.name for b in self.bodies
                          if not liquid(b.handle.material) and not b.handle.material.is_rigid})
         rigid = [b.handle.name for b in self.bodies if b.handle.material.is_rigid]
-        if others:
+        if others:  # docs/experiments/README.md: as part of the projected mixture they stood on the water
             why.append(f"solids other than rigid bodies ({', '.join(others)})")
-        if len(rigid) != 1:
-            why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid) or 'none'}); it couples exactly one")
+        if len(rigid) > 1:
+            why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid)}); it couples one")
         if not liquids:
             why.append("a scene without liquid")
-        elif len(liquids) > 1:
-            why.append(f"liquids of different densities ({', '.join(f'{d:g}' for d in sorted(liquids))} kg/m³)")
         if why:
             raise ValueError("pressure='projection' (engine/projection.py) does not handle yet: " + "; ".join(why)
                              + ". Use pressure='state' for this scene.")

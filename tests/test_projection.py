@@ -121,8 +121,6 @@ def test_projection_refuses_what_it_does_not_handle_by_name():
     """Each unsupported part is named in the error that build() raises (before any kernel is compiled)."""
     with pytest.raises(ValueError, match="pressure must be 'state'"):
         fl.Scene(pressure="incompressible")
-    with pytest.raises(ValueError, match="0 rigid bodies"):
-        _scene().build()
     scene = _scene()
     scene.add_particles(Box((0.03, 0.03, 0.05), (0.06, 0.06, 0.08)), M.Rigid("r", density=500.0), name="cube")
     with pytest.raises(ValueError, match="gradients"):
@@ -146,11 +144,73 @@ def test_projection_refuses_what_it_does_not_handle_by_name():
         scene.build()
     with pytest.raises(ValueError, match=r"2 rigid bodies \(a, b\)"):
         _cube(_cube(_scene(), "a"), "b", lo=(0.065, 0.065, 0.05)).build()
-    with pytest.raises(ValueError, match=r"liquids of different densities \(1000, 1200 kg/m³\)"):
-        scene = _cube(_scene())
-        scene.add_particles(Box((0, 0, 0.04), (0.1, 0.02, 0.05)),
-                            M.NewtonianLiquid("brine", density=1200.0, bulk_modulus=2e6), name="brine")
-        scene.build()
     with pytest.raises(ValueError, match="a scene without liquid"):
         scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=8, pressure="projection")
         _cube(scene).build()
+
+
+BRINE = M.NewtonianLiquid("brine", density=1200.0, bulk_modulus=2e6)
+
+
+def _pressure_column(sim):
+    """(heights m, pressures Pa) of the solve's unknowns in the domain's central column of nodes."""
+    proj, model = sim.solver.proj, sim.solver.model
+    kind, p = proj.kind.to_numpy(), proj.p.to_numpy()
+    i, j = model.grid_shape[0] // 2, model.grid_shape[1] // 2
+    rows = np.nonzero(kind[i, j, :] == 1)[0]  # LIQ
+    return model.origin[2] + rows * model.dx, p[i, j, rows]
+
+
+def test_layered_liquids_without_a_body_rest_at_their_hydrostatic_pressure():
+    """Brine (1200 kg/m³) under water, 4 cm each in a 12 cm tank at 16 cells, no body: the projection's density is
+    each node's mass over its liquids' volume, so the pressure rises by ρ g per metre in each layer (1200 g and
+    1000 g, within 3 %) and they stay layered (no brine particle more than two cells above the interface after
+    0.2 s). A projection with one density for the whole liquid (what it took before 2026-12-05) reads 1000 g in
+    the brine. Measured (2026-12-05): 1200 g and 998 g. Not asserted: the still liquid is not quite still under
+    the projection, with or without the second liquid (rms speed 0.013-0.016 m/s after 0.2 s, 0.007-0.009 with
+    APIC instead of AFLIP; docs/engine.md, "Open problems")."""
+    def run():
+        scene = fl.Scene(lower=(0, 0, 0), upper=(0.12, 0.12, 0.12), grid_res=16, dt=2e-3, substeps=1,
+                         pressure="projection")
+        scene.add_particles(Box((0, 0, 0), (0.12, 0.12, 0.04)), BRINE, name="brine")
+        scene.add_particles(Box((0, 0, 0.04), (0.12, 0.12, 0.08)), M.WATER, name="water")
+        sim = scene.build()
+        sim.step(n=100)
+        return sim
+    sim = fresh(run)
+    z, p = _pressure_column(sim)
+    dx = sim.solver.model.dx
+    g = 9.81
+    brine = (z > 1.5 * dx) & (z < 0.04 - 1.5 * dx)  # nodes whose stencils hold one liquid only
+    water = (z > 0.04 + 1.5 * dx) & (z < 0.08 - 1.5 * dx)
+    slope_brine = -np.polyfit(z[brine], p[brine], 1)[0] / g
+    slope_water = -np.polyfit(z[water], p[water], 1)[0] / g
+    highest_brine = float(sim.positions("brine")[:, 2].max())
+    report("projection, layered liquids", slope_brine=slope_brine, slope_water=slope_water,
+           highest_brine_mm=highest_brine * 1e3, nodes=(int(brine.sum()), int(water.sum())))
+    assert brine.sum() >= 2 and water.sum() >= 2
+    assert slope_brine == pytest.approx(1200.0, rel=0.03)
+    assert slope_water == pytest.approx(1000.0, rel=0.03)
+    assert highest_brine < 0.04 + 2 * dx
+
+
+def test_a_closed_box_full_of_liquid_stays_at_rest():
+    """Water filling a closed 10 cm box (no air anywhere) at 8 cells stays where it is: with no air node both
+    solves are pure Neumann problems, singular and by rounding inconsistent, and the liquid was thrown across the
+    box within two steps (a Rayleigh-Taylor slab); the highest liquid node is now pinned to p = 0 (projection.py,
+    _pin_node). After 0.1 s no particle has moved by a tenth of a cell (measured 2026-12-05: 0.66 mm of 12.5) and
+    none moves at 5 cm/s (the fastest: 1.35 cm/s, rms 0.24 cm/s: the projection's liquid is not quite still,
+    docs/engine.md, "Open problems")."""
+    def run():
+        scene = fl.Scene(lower=(0, 0, 0), upper=(0.1, 0.1, 0.1), grid_res=8, pressure="projection")
+        scene.add_particles(Box((0, 0, 0), (0.1, 0.1, 0.1)), M.WATER, name="water")
+        sim = scene.build()
+        x0 = sim.positions("water")
+        sim.step(n=50)
+        return sim, x0
+    sim, x0 = fresh(run)
+    moved = float(np.abs(sim.positions("water") - x0).max())
+    speed = float(np.abs(sim.velocities("water")).max())
+    report("projection, full box", moved_mm=moved * 1e3, max_speed=speed)
+    assert speed < 0.05
+    assert moved < 0.1 * sim.solver.model.dx

@@ -149,18 +149,20 @@ def _layer_shape(width, thick, z0, z1, mid, amp, above):
 
 
 def rayleigh_taylor(top, bottom, res: int = 64, width: float = 0.1, height: float = 0.2, amp: float = 0.005,
-                    duration: float = 0.2, substeps: int | None = 12, hydrostatic: bool = False) -> dict:
+                    duration: float = 0.2, substeps: int | None = 12, hydrostatic: bool = False,
+                    **scene_options) -> dict:
     """The seeded two-layer slab, `res` cells over its height (res/2 per wavelength W = width). Reported: times,
     spike amplitudes (m; where the interface starts lowest, x = W/2, how far below the mid-plane the top liquid
     reaches), the top layer's centroid drop (m), σ fitted over 0.04–0.2 s and σ from linear theory.
     hydrostatic: start both layers with their hydrostatic compression (Simulator.start_hydrostatic) instead of
-    at J = 1."""
+    at J = 1 (the equation of state's liquids only). scene_options go to fl.Scene (e.g. pressure="projection")."""
     import fluidlab_core as fl
 
     dx = height / res
     thick = 2 * dx
     mid = height / 2
-    scene = fl.Scene(lower=(0, 0, 0), upper=(width, thick, height), grid_res=res, dt=1e-3, substeps=1)
+    scene = fl.Scene(lower=(0, 0, 0), upper=(width, thick, height), grid_res=res, dt=1e-3, substeps=1,
+                     **scene_options)
     scene.add_particles(_layer_shape(width, thick, 0.0, height, mid, amp, above=False), bottom, name="bottom")
     scene.add_particles(_layer_shape(width, thick, 0.0, height, mid, amp, above=True), top, name="top")
     _substeps(scene, substeps)

@@ -102,6 +102,8 @@ class Model:
         # fluids and solids each have a velocity field on the grid when a scene has both (grid.field_velocity)
         self.fluid_models = [k for k, m in enumerate(self.constitutive) if m.fluid]
         self.two_fields = 0 < len(self.fluid_models) < len(self.constitutive)
+        if spec.pressure == "projection":  # the projection reads the liquids' field, with or without a body
+            self.two_fields = True
         self.contact_fill = float(spec.contact_fill)
         # AFLIP (transfer.py): the liquids' particles keep α of their own velocity's difference from the grid's
         self.flip = float(spec.flip)

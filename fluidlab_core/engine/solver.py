@@ -95,6 +95,10 @@ class Solver:
         self.projection = model.projection
         if self.projection:  # the liquid field's velocity before gravity and the projection (projection.py, AFLIP)
             self.grid_v0 = ti.Vector.field(3, real, shape=model.grid_shape)
+            # and the volume of the particles in that field (m³), whose mass over it is the mixture's density
+            self.grid_vol_f = ti.field(real, shape=model.grid_shape)
+            if self.private:
+                self.copies_vol_f = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -193,6 +197,8 @@ class Solver:
                     self.grid_m_f[I] = 0.0
                     self.grid_mv_f[I] = ti.Vector.zero(float, 3)
                     self.grid_vol[I] = 0.0
+                if ti.static(self.projection):
+                    self.grid_vol_f[I] = 0.0
                 if ti.static(self.has_flip):
                     self.grid_mv0[I] = ti.Vector.zero(float, 3)
             for p in range(self.n_particles):
@@ -226,6 +232,8 @@ class Solver:
                         vn_f = mv_f / m_f + self.model.dt * ti.Vector(self.model.gravity)
                         self.grid_v0[I] = mv_f / m_f
                     self.grid_vol[I] = vol
+                    if ti.static(self.private):
+                        self.grid_vol_f[I] = transfer.reduce_scalar_copies(self.copies_vol_f, self.copies, I)
                 else:
                     vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
                 self.grid_m[I] = m
@@ -390,8 +398,8 @@ class Solver:
             if transfer.is_fluid(self.model, p):  # incompressible: the projection gives the pressure
                 Fp = ti.Matrix.identity(float, 3)
                 tau = tau - tau.trace() / 3.0 * ti.Matrix.identity(float, 3)
-            elif self.model.rigid.body[p] >= 0:  # a rigid body carries no stress: the projections hold it
-                tau = ti.Matrix.zero(float, 3, 3)
+            else:  # a rigid body (the projection's only solid: Scene refuses the others) carries no stress: the
+                tau = ti.Matrix.zero(float, 3, 3)  # projections hold it
         if ti.static(self.has_rigid):
             self.F_model[p] = Fp
         else:
@@ -404,6 +412,8 @@ class Solver:
                 if ti.static(self.private):
                     transfer.scatter_volume(self.model, self.copies_vol, c, True, state.x[s_in, p], vol)
                     if transfer.is_fluid(self.model, p):
+                        if ti.static(self.projection):
+                            transfer.scatter_volume(self.model, self.copies_vol_f, c, True, state.x[s_in, p], vol)
                         transfer.scatter(self.model, self.copies_m_f, self.copies_mv_f, c, True, state.x[s_in, p],
                                          state.v[s_in, p], Cp, tau, p)
                     else:
@@ -412,6 +422,8 @@ class Solver:
                 else:
                     transfer.scatter_volume(self.model, self.grid_vol, c, False, state.x[s_in, p], vol)
                     if transfer.is_fluid(self.model, p):
+                        if ti.static(self.projection):
+                            transfer.scatter_volume(self.model, self.grid_vol_f, c, False, state.x[s_in, p], vol)
                         transfer.scatter(self.model, self.grid_m_f, self.grid_mv_f, c, False, state.x[s_in, p],
                                          state.v[s_in, p], Cp, tau, p)
                     else:
@@ -482,9 +494,10 @@ class FastSolver(Solver):
         self.projection_p2g_kernel(state)
         self.proj.project(state)
         self.projection_g2p_kernel(state)
-        self.proj.displace()
-        self.rigid.forward(state, 0)
-        self.proj.push(state)
+        self.proj.displace(state)
+        if self.rigid is not None:
+            self.rigid.forward(state, 0)
+            self.proj.push(state)
 
     @ti.kernel
     def substep_kernel(self, state: ti.template(), twist: ti.types.ndarray()):
