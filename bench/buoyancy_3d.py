@@ -59,6 +59,8 @@ def main():
     ap.add_argument("--pressure", choices=["state", "projection"], default="state",
                     help="Scene(pressure=...): the liquid's equation of state or the projection with the body "
                          "(engine/projection.py)")
+    ap.add_argument("--elastic-mu", type=float, default=1e5,
+                    help="the elastic body's shear modulus (Pa; its λ is 2.8 μ, a Poisson ratio of 0.37)")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
@@ -101,7 +103,7 @@ def main():
     rigid_bulk = M.RIGID.bulk_modulus * args.body_bulk_factor
     body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
         common.FLOAT_FOAM if args.body == "foam" else \
-        M.Elastic("light_elastic", density=rho, shear_modulus=1e5, lame_lambda=2.8e5)
+        M.Elastic("light_elastic", density=rho, shear_modulus=args.elastic_mu, lame_lambda=2.8 * args.elastic_mu)
     # the scene of the physics test's floating cube (apps/validation.py), here with the bench's options
     sim, scene = validation.floating_cube_sim(args.res, body, water, drop=args.drop, width=width, level=level,
                                               side=b, lift=args.lift, substep_factor=args.substep_factor, **kw)
@@ -122,7 +124,8 @@ def main():
     fields = f"two velocity fields (contact_fill {sim.model.contact_fill:g})" \
         if getattr(sim.model, "two_fields", False) else "one velocity field"
     fields += "".join(f", {k} {kw[k]}" for k in ("jbar", "flip", "pressure") if k in kw)
-    text = "\n".join([f"{args.body} cube of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
+    what = f"{args.body} cube" + (f" (μ {args.elastic_mu:g} Pa)" if args.body == "elastic" else "")
+    text = "\n".join([f"{what} of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
                       f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
                       f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",

@@ -101,9 +101,10 @@ class Scene:
         are forward only (no gradients) and change how floating bodies sit (docs/engine.md); engine/transfer.py
         has the formulas. pressure: the liquids' pressure, "state" (the default: weakly compressible, from each
         particle's volume change by its equation of state) or "projection" (incompressible: the pressure from a
-        Poisson solve on the grid, with one rigid body's velocity as an unknown of the same solve, so that a body
-        floats at Archimedes' depth; engine/projection.py). "projection" is forward only, for liquids (of one
-        density or several) and at most one rigid body, without tools, statics, emitters, gas or other solids for now (a
+        Poisson solve on the grid, with one rigid body's velocity, or the deformable solids' nodes' velocities, as
+        unknowns of the same solve, so that a body floats at Archimedes' depth; engine/projection.py). "projection"
+        is forward only, for liquids (of one density or several) with one rigid body or deformable solids (not
+        both), without tools, statics, emitters or gas for now (a
         liquid's bulk viscosity or damping, which act on its pressure, are then dropped: the projection sets the
         pressure; its shear viscosity stays); its flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
@@ -671,8 +672,8 @@ class Scene:
         others = sorted({b.handle.material.name for b in self.bodies
                          if not liquid(b.handle.material) and not b.handle.material.is_rigid})
         rigid = [b.handle.name for b in self.bodies if b.handle.material.is_rigid]
-        if others:  # docs/experiments/README.md: as part of the projected mixture they stood on the water
-            why.append(f"solids other than rigid bodies ({', '.join(others)})")
+        if others and rigid:
+            why.append(f"deformable solids ({', '.join(others)}) beside a rigid body")
         if len(rigid) > 1:
             why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid)}); it couples one")
         if not liquids:

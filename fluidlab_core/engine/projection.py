@@ -26,6 +26,16 @@ volume (ρ of the densest liquid where none has volume), and a face between unkn
 (below written ρ), so that the pressure rises by each layer's own ρ g (tests/test_projection.py: brine under water).
 A domain without air is pinned (p = 0 half a cell above its highest liquid node) and skips the position correction.
 
+Deformable solids (elastic, plastic; in a scene without a rigid body). They keep the solids' velocity field and
+their own stress; each of its nodes' velocities v_K (mass m_K) is an unknown of the same solve, as the rigid body's
+q is: a face between I and J has the solids' share σ_f from s̄ = ½ (s_I + s_J) (s: the solids' volume share of
+the node's cell; SOFT_SHARP undoes the B-spline's smearing; 1 where a node is SOFT, the solids' without liquid),
+their velocity u_f = Σ_K c_fK v_K·e_d with c_fK = m_K/(m_I + m_J) over its two nodes, and the pressure's force on
+v_K is Q_K = Δx² G_K, G_K = Σ_f c_fK σ_f w_f s (p_K − p_J) e_d. So (A p)_I gains Δx Σ_f s σ_f w_f Σ_K c_fK (G_K/m_K)·e_d (matrix-free,
+symmetric; the MIC(0) factor leaves it to the CG) and v_K = v*_K + Δt Δx² G_K/m_K after the solve. Taken into the
+liquid's field instead, as a mixture, an elastic cube stood on the water instead of entering it
+(docs/experiments/elastic_mixture_projection.patch).
+
 Discretisation. Node I at x_I = origin + I Δx; the face f from I to J = I + s e_d (s = ±1) has the midpoint
 x_f, the body's solid share σ_f (the share of the face's Δx³ box inside the body, from the body's SDF φ:
 clamp(½ − φ(x_f)/Δx, 0, 1), from 4³ sub-boxes where |φ(x_f)| < Δx, so that a box holding an edge of the body
@@ -70,6 +80,13 @@ import taichi as ti
 from fluidlab_core.engine import grid, transfer
 
 AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
+SOFT = 9  # a node of a deformable solid without liquid (no unknown; its faces to the liquid are closed)
+# a face's solids' share from the mean s̄ of its nodes' volume shares: σ = clamp(½ + (s̄ − ½) SOFT_SHARP, 0, 1). The
+# quadratic B-spline spreads a body's volume over 1.5 cells each side of its surface (slope ¾ per cell at it), and
+# σ = s̄ counted the smeared part below a body's bottom as well as the closed face above it: a dropped 500 kg/m³
+# elastic cube floated at 0.43 (Archimedes 0.50; 16 cells). Inverting the slope at a plane surface (d = (½ − s̄)/¾
+# cells from it, σ = clamp(½ − d)) gives 4/3: 0.474, 0.473, 0.477 in its first three seconds.
+SOFT_SHARP = 4.0 / 3.0
 SHELL, LIQ_SHELL, AIR_SHELL, ENC_SHELL = 5, 6, 7, 8  # the classification's passes over the body's shell
 
 TOL = 1e-7  # the pressure CG's relative residual
@@ -103,6 +120,8 @@ class LiquidProjection:
         self.rho_w = float(model.liquid_density)
         self.rho = ti.field(ti.f64, shape=())  # ρ_w in float64 (a Python constant would take the default precision)
         self.has_body = model.has_rigid  # the rigid body, if the scene has one (else only the mixture and walls)
+        # deformable solids (elastic, plastic): the solids' field's nodes, each an unknown velocity of the solve
+        self.has_soft = (not model.has_rigid) and len(model.fluid_models) < len(model.constitutive)
         shape = model.grid_shape
         f64, real = ti.f64, model.real
         self.kind = ti.field(ti.i8, shape=shape)
@@ -143,6 +162,11 @@ class LiquidProjection:
         self.force = ti.Vector.field(3, real, shape=())  # the push's force (N) and torque (N m), from the host
         self.torque = ti.Vector.field(3, real, shape=())
         self.enclosed = ti.field(ti.i8, shape=shape)  # 1 at an enclosed air node beside the body (enclose_air)
+        if self.has_soft:
+            self.soft_s = ti.field(f64, shape=shape)  # the solids' volume share of the node's cell
+            self.soft_m = ti.field(f64, shape=shape)  # the solids' node mass (kg)
+            self.soft_v = ti.Vector.field(3, f64, shape=shape)  # their velocity v* before the solve (m/s)
+            self.soft_dv = ti.Vector.field(3, f64, shape=shape)  # G_K/m_K of the CG's x (soft_of; 1/(m s))
         self.was_enclosed = ti.field(ti.i8, shape=shape)  # and in the last substep
         self.pocket_v = ti.Vector.field(3, f64, shape=shape)  # a pocket node's velocity after the last solve (m/s)
         self._pockets = False  # whether `enclosed` holds any node
@@ -234,6 +258,12 @@ class LiquidProjection:
         out = ti.f64(0.0)
         if self.kind[I] == BSOLID or self.kind[J] == BSOLID:
             out = 1.0
+        elif ti.static(self.has_soft):
+            if self.kind[I] == SOFT or self.kind[J] == SOFT:
+                out = 1.0
+            else:
+                sb = 0.5 * (self.soft_s[I] + self.soft_s[J])
+                out = ti.min(ti.max(0.5 + (sb - 0.5) * SOFT_SHARP, 0.0), 1.0)
         elif ti.static(self.has_body):
             rig = self.model.rigid
             R, c, valid = self._body()
@@ -280,6 +310,55 @@ class LiquidProjection:
         else:
             out = self.sig_p[I - ti.Vector.unit(3, d, ti.i32)][d]
         return out
+
+    @ti.func
+    def _soft_face(self, I, J, d: ti.template(), v: ti.template()):
+        """The solids' velocity component d on the face between I and J: Σ_K c_K v_K, c_K = m_K/(m_I + m_J)."""
+        mi, mj = self.soft_m[I], self.soft_m[J]
+        out = ti.f64(0.0)
+        if mi + mj > 0.0:
+            out = (mi * v[I][d] + mj * v[J][d]) / (mi + mj)
+        return out
+
+    @ti.func
+    def _soft_of(self, x: ti.template()):
+        """soft_dv_K = G_K/m_K, G_K = Σ_f c_fK σ_f w_f s (x_K − x_J) e_d over the faces f from K to J = K + s e_d
+        (x = 0 off the unknowns): the solids' generalised force of the pressure x, over Δx², by node."""
+        for K in ti.grouped(self.kind):
+            G = ti.Vector.zero(ti.f64, 3)
+            mk = self.soft_m[K]
+            if mk > 0.0 and self.kind[K] != WALL:
+                xk = ti.f64(0.0)
+                if self._unknown(K):
+                    xk = x[K]
+                for d in ti.static(range(3)):
+                    for sgn in ti.static((-1, 1)):
+                        J = K + sgn * ti.Vector.unit(3, d, ti.i32)
+                        if self._inside(J):
+                            if self.kind[J] != WALL:
+                                sig = self._sig(K, d, sgn)
+                                if sig > 0.0:
+                                    xj = ti.f64(0.0)
+                                    if self._unknown(J):
+                                        xj = x[J]
+                                    c = mk / (mk + self.soft_m[J])
+                                    G[d] += c * sig * self._facew(K, d) * sgn * (xk - xj)
+                G /= mk
+            self.soft_dv[K] = G
+
+    @ti.func
+    def _soft_A(self, I):
+        """The solids' part of (A x)_I: Δx Σ_f s σ_f w_f Σ_K c_fK soft_dv_K·e_d (soft_of(x) beforehand)."""
+        out = ti.f64(0.0)
+        for d in ti.static(range(3)):
+            for sgn in ti.static((-1, 1)):
+                J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+                if self._inside(J):
+                    if self.kind[J] != WALL:
+                        sig = self._sig(I, d, sgn)
+                        if sig > 0.0:
+                            out += sgn * self._facew(I, d) * sig * self._soft_face(I, J, d, self.soft_dv)
+        return self.model.dx * out
 
     # --- the pressure solve -------------------------------------------------------------------------------
     @ti.kernel
@@ -347,6 +426,14 @@ class LiquidProjection:
             elif s.grid_m_f[I] > model.mass_floor and fill >= FILL:
                 k = LIQ
                 v = ti.cast(grid.walls(model, xn, s.grid_v_f[I]), ti.f64)  # the wall's velocity normal to it
+            if ti.static(self.has_soft):
+                share = ti.max(ti.cast(s.grid_vol[I] - s.grid_vol_f[I], ti.f64) * model.inv_dx ** 3, 0.0)
+                self.soft_s[I] = ti.min(share, 1.0)
+                self.soft_m[I] = ti.cast(s.grid_m[I], ti.f64)
+                self.soft_v[I] = ti.cast(s.grid_v[I], ti.f64)
+                self.soft_dv[I] = ti.Vector.zero(ti.f64, 3)
+                if k == AIR and not wall and share >= FILL and s.grid_m[I] > model.mass_floor:
+                    k = SOFT
             self.kind[I] = ti.cast(k, ti.i8)
             self.vs[I] = v
         # a shell node is liquid where a neighbour outside the body is, whatever liquid mass the exclusion's gap
@@ -508,11 +595,13 @@ class LiquidProjection:
                                 if kj == AIR:
                                     uf = self.vs[I][d]
                                     dg += fw * a / (self.rho_n[I] * self._theta(I, J))
-                                elif kj != BSOLID:
+                                elif kj != BSOLID and kj != SOFT:
                                     uf = 0.5 * (self.vs[I][d] + self.vs[J][d])
                                     dg += fw * a * self._beta(I, J)
                                 Kt = self._K(I, d, sgn)
                                 div += sgn * fw * a * uf
+                                if ti.static(self.has_soft):  # the solids' flux through the face's share σ
+                                    div += sgn * fw * sig * self._soft_face(I, J, d, self.soft_v)
                                 wgt = ti.f64(1.0)  # a solid face's weight moved to the surface's crossing
                                 Ip = I - sgn * ti.Vector.unit(3, d, ti.i32)
                                 if self._inside(Ip) and kj == BSOLID:
@@ -556,10 +645,14 @@ class LiquidProjection:
         # Δx b_I · M⁻¹ Σ_J x_J b_J (bx set by _bx_of beforehand)
         out += dx * (self.bf[I].dot(self.bx_f[None]) * self.minv_m[None]
                      + self.bt[I].dot(self.minv_I[None] @ self.bx_t[None]))
+        if ti.static(self.has_soft):
+            out += self._soft_A(I)
         return out
 
     @ti.func
     def _bx_of(self, x: ti.template()):
+        if ti.static(self.has_soft):
+            self._soft_of(x)
         self.bx_f[None] = ti.Vector.zero(ti.f64, 3)
         self.bx_t[None] = ti.Vector.zero(ti.f64, 3)
         for I in ti.grouped(self.kind):
@@ -576,6 +669,12 @@ class LiquidProjection:
         self.body_dL[None] = dt * dx * dx * self.bx_t[None]
         self.dq_lin[None] = self.body_dP[None] * self.minv_m[None]
         self.dq_ang[None] = self.minv_I[None] @ self.body_dL[None]
+        if ti.static(self.has_soft):  # the solids' nodes: v = v* + Δt Δx² M⁻¹ G (soft_of(p) above), then the walls
+            for K in ti.grouped(self.kind):
+                if self.soft_m[K] > 0.0:
+                    xn = ti.Vector(self.model.origin) + K * self.model.dx
+                    v = self.soft_v[K] + dt * dx * dx * self.soft_dv[K]
+                    self.solver.grid_v[K] = grid.walls(self.model, xn, ti.cast(v, self.model.real))
 
     @ti.kernel
     def _start(self) -> ti.f64:
@@ -744,7 +843,7 @@ class LiquidProjection:
                             beta = 1.0 / self.rho_n[I]
                         s += a * sgn * beta * (0.0 - self.p[I]) / (self._theta(I, J) * dx)
                         n += a
-                    elif kj != WALL and kj != BSOLID:
+                    elif kj != WALL and kj != BSOLID and kj != SOFT:
                         beta = ti.f64(1.0)
                         if ti.static(weighted):
                             beta = self._beta(I, J)
@@ -826,10 +925,19 @@ class LiquidProjection:
                     if ui or uj:
                         sig = self.sig_p[I][d]
                         if sig > 0.0:
-                            xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
-                                + 0.5 * dx * ti.Vector.unit(3, d, ti.f64)
-                            ub = ql_new[d] + qa_new.cross(xf - c)[d]
-                            ub0 = ql_old[d] + qa_old.cross(xf - c)[d]
+                            ub, ub0 = ti.f64(0.0), ti.f64(0.0)
+                            if ti.static(self.has_soft):  # the solids' nodes after and before the solve
+                                mi, mj = self.soft_m[I], self.soft_m[J]
+                                if mi + mj > 0.0:
+                                    vi = self.soft_v[I][d] + dt * dx * dx * self.soft_dv[I][d]
+                                    vj = self.soft_v[J][d] + dt * dx * dx * self.soft_dv[J][d]
+                                    ub = (mi * vi + mj * vj) / (mi + mj)
+                                    ub0 = self._soft_face(I, J, d, self.soft_v) - g[d] * dt
+                            else:
+                                xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
+                                    + 0.5 * dx * ti.Vector.unit(3, d, ti.f64)
+                                ub = ql_new[d] + qa_new.cross(xf - c)[d]
+                                ub0 = ql_old[d] + qa_old.cross(xf - c)[d]
                             u = (1.0 - sig) * u + sig * ub
                             u0 = (1.0 - sig) * u0 + sig * ub0
                 self.uf[I][d] = ti.cast(u, self.model.real)

@@ -398,8 +398,9 @@ class Solver:
             if transfer.is_fluid(self.model, p):  # incompressible: the projection gives the pressure
                 Fp = ti.Matrix.identity(float, 3)
                 tau = tau - tau.trace() / 3.0 * ti.Matrix.identity(float, 3)
-            else:  # a rigid body (the projection's only solid: Scene refuses the others) carries no stress: the
-                tau = ti.Matrix.zero(float, 3, 3)  # projections hold it
+            elif ti.static(self.has_rigid):  # a rigid body carries no stress: the projections hold it (a
+                if self.model.rigid.body[p] >= 0:  # deformable solid keeps its own)
+                    tau = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.has_rigid):
             self.F_model[p] = Fp
         else:
