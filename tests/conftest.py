@@ -81,7 +81,8 @@ def pytest_collection_modifyitems(config, items):
 
 
 def pytest_runtest_logreport(report):
-    _recorded[_test_file(report.nodeid)] = _recorded.get(_test_file(report.nodeid), 0.0) + report.duration
+    name = _test_file(report.nodeid)
+    _recorded[name] = _recorded.get(name, 0.0) + report.duration
 
 
 def pytest_sessionfinish(session, exitstatus):

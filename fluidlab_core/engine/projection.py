@@ -170,6 +170,11 @@ class LiquidProjection:
         self.was_enclosed = ti.field(ti.i8, shape=shape)  # and in the last substep
         self.pocket_v = ti.Vector.field(3, f64, shape=shape)  # a pocket node's velocity after the last solve (m/s)
         self._pockets = False  # whether `enclosed` holds any node
+        g = np.asarray(model.gravity, dtype=float)  # "up": against gravity, along its largest component (z without)
+        self._up_axis = int(np.argmax(np.abs(g))) if np.any(g) else 2
+        self._up = -1 if g[self._up_axis] > 0 else 1
+        self._top_row = None  # the highest row of nodes inside the walls (fixed: found from the first kinds)
+        self._pinned = False  # whether pin holds a node (the host's copy: position_correction reads it every substep)
         self.pin = ti.field(ti.i32, shape=())  # the flat index of the node pinned to p = 0 without air, or −1
         self.iterations = []  # the pressure solve's CG iterations per substep
         self.correction_iterations = []  # the position correction's
@@ -321,6 +326,16 @@ class LiquidProjection:
         return out
 
     @ti.func
+    def _soft_weight(self, I, d: ti.template(), sgn: ti.template()):
+        """σ_f w_f of the face from I to I + sgn e_d, 0 where that node is outside the domain or a wall's."""
+        out = ti.f64(0.0)
+        J = I + sgn * ti.Vector.unit(3, d, ti.i32)
+        if self._inside(J):
+            if self.kind[J] != WALL:
+                out = self._sig(I, d, sgn) * self._facew(I, d)
+        return out
+
+    @ti.func
     def _soft_of(self, x: ti.template()):
         """soft_dv_K = G_K/m_K, G_K = Σ_f c_fK σ_f w_f s (x_K − x_J) e_d over the faces f from K to J = K + s e_d
         (x = 0 off the unknowns): the solids' generalised force of the pressure x, over Δx², by node."""
@@ -333,16 +348,13 @@ class LiquidProjection:
                     xk = x[K]
                 for d in ti.static(range(3)):
                     for sgn in ti.static((-1, 1)):
-                        J = K + sgn * ti.Vector.unit(3, d, ti.i32)
-                        if self._inside(J):
-                            if self.kind[J] != WALL:
-                                sig = self._sig(K, d, sgn)
-                                if sig > 0.0:
-                                    xj = ti.f64(0.0)
-                                    if self._unknown(J):
-                                        xj = x[J]
-                                    c = mk / (mk + self.soft_m[J])
-                                    G[d] += c * sig * self._facew(K, d) * sgn * (xk - xj)
+                        wgt = self._soft_weight(K, d, sgn)
+                        if wgt > 0.0:
+                            J = K + sgn * ti.Vector.unit(3, d, ti.i32)
+                            xj = ti.f64(0.0)
+                            if self._unknown(J):
+                                xj = x[J]
+                            G[d] += mk / (mk + self.soft_m[J]) * wgt * sgn * (xk - xj)
                 G /= mk
             self.soft_dv[K] = G
 
@@ -352,12 +364,9 @@ class LiquidProjection:
         out = ti.f64(0.0)
         for d in ti.static(range(3)):
             for sgn in ti.static((-1, 1)):
-                J = I + sgn * ti.Vector.unit(3, d, ti.i32)
-                if self._inside(J):
-                    if self.kind[J] != WALL:
-                        sig = self._sig(I, d, sgn)
-                        if sig > 0.0:
-                            out += sgn * self._facew(I, d) * sig * self._soft_face(I, J, d, self.soft_dv)
+                wgt = self._soft_weight(I, d, sgn)
+                if wgt > 0.0:
+                    out += sgn * wgt * self._soft_face(I, I + sgn * ti.Vector.unit(3, d, ti.i32), d, self.soft_dv)
         return self.model.dx * out
 
     # --- the pressure solve -------------------------------------------------------------------------------
@@ -499,31 +508,31 @@ class LiquidProjection:
         liquid across the domain in two steps. Then the highest liquid node gets p = 0 half a cell above it, as if
         air were there (pin, read by rhs); −1 otherwise."""
         liquid = kind == LIQ
-        pin = -1
-        if liquid.any() and not (kind == AIR).any():
-            idx = np.argwhere(liquid)
-            g = np.asarray(self.model.gravity, dtype=float)
-            axis = int(np.argmax(np.abs(g))) if np.any(g) else 2
-            up = -1.0 if g[axis] > 0 else 1.0
-            top = idx[np.argmax(up * idx[:, axis])]
-            pin = int(np.ravel_multi_index(tuple(top), kind.shape))
-        self.pin[None] = pin
+        pinned = bool(liquid.any() and not (kind == AIR).any())
+        if pinned or self._pinned:
+            pin = -1
+            if pinned:
+                idx = np.argwhere(liquid)
+                top = idx[np.argmax(self._up * idx[:, self._up_axis])]
+                pin = int(np.ravel_multi_index(tuple(top), kind.shape))
+            self.pin[None] = pin
+        self._pinned = pinned
 
     def _pocket_mask(self, kind):
         """int8 mask of the air nodes enclose_air makes liquid, or None where there are none."""
         from scipy import ndimage
 
         air = kind == AIR
-        if not air.any():
+        if not self.has_body or not np.any(self.model.gravity) or not air.any():  # pockets are the body's
             return None
         labels, n = ndimage.label(air)  # face-connected components (6-connectivity)
-        g = np.asarray(self.model.gravity, dtype=float)
-        if n < 2 or not np.any(g):
+        if n < 2:
             return None
-        axis = int(np.argmax(np.abs(g)))
-        open_rows = np.nonzero(np.any(np.moveaxis(kind != WALL, axis, 0), axis=tuple(range(1, kind.ndim))))[0]
-        top = open_rows.max() if g[axis] < 0 else open_rows.min()  # the highest row inside the walls
-        top_labels = np.unique(np.take(labels, top, axis=axis))
+        axis = self._up_axis
+        if self._top_row is None:
+            open_rows = np.nonzero(np.any(np.moveaxis(kind != WALL, axis, 0), axis=tuple(range(1, kind.ndim))))[0]
+            self._top_row = int(open_rows.max() if self._up > 0 else open_rows.min())
+        top_labels = np.unique(np.take(labels, self._top_row, axis=axis))
         top_labels = top_labels[top_labels > 0]
         if top_labels.size == 0:
             return None
@@ -1039,6 +1048,8 @@ class LiquidProjection:
         """The substep's projection, between the grid update and G2P."""
         if not self.primed:  # the body's pose before the first projection (nothing has projected it yet)
             self.rho[None] = self.rho_w
+            self.pin[None] = -1  # no node pinned (_pin_node writes it only when that changes)
+            self._pinned = False
             if self.has_body:
                 self.solver.rigid.prime(state)
             self.primed = True
@@ -1057,7 +1068,7 @@ class LiquidProjection:
         by `displace` after G2P. Not without air (a pinned solve, _pin_node): a liquid that fills the domain can only
         move its packing about, and the pinned solve drained the whole box's packing error to the pinned node (a
         full 10 cm box at 8 cells moved particles by 15.6 mm in its first steps; 0.66 mm in 0.1 s without it)."""
-        if self.pin[None] >= 0:
+        if self._pinned:
             self.disp.fill(0.0)
             return
         self._packing_rhs()
