@@ -103,7 +103,7 @@ def _cmd_optimise(args):
     from fluidlab_core.trajectory_store import TrajectoryStore, report_path
 
     # everything that can be refused is refused before anything is announced or computed
-    task = tasks.make(args.task, size=args.size)
+    task = tasks.make(args.task, size=args.size, pressure=args.pressure)
     budget = args.budget if args.budget is not None else 12 * task.horizon
     optim.check_request(task, args.method, budget, args.seed)
     if args.without and args.method != "dp":
@@ -120,7 +120,8 @@ def _cmd_optimise(args):
                           callback=lambda p: bar.update(p.steps, p.line()), without=args.without)
     bar.close()
     path = traj.save(path)
-    report = {"task": task.name, "size": args.size, "method": args.method, "seed": args.seed, "trajectory": str(path),
+    report = {"task": task.name, "size": args.size, "pressure": args.pressure, "method": args.method, "seed": args.seed,
+              "trajectory": str(path),
               **{k: traj.metadata[k] for k in ("final_loss", "return", "budget_steps", "steps_used", "iterations",
                                                "seconds")},
               "loss_first": traj.loss_history[0] if traj.loss_history else None,
@@ -144,11 +145,11 @@ def _cmd_evaluate(args):
     from fluidlab_core.episode import task_for
 
     traj = _load_trajectory(args.trajectory)
-    task = task_for(traj, args.size)
+    task = task_for(traj, args.size, args.pressure)
     fluidlab_core.init(arch=args.arch, precision=args.precision)
     actions, position = task.actions_from_trajectory(traj)
     out = task.evaluate(actions, tool_position=position)
-    print(f"{task.name} ({task.size}): loss {out['loss']:.6g}, return {out['return']:.4g} over {len(actions)} steps "
+    print(f"{task.name} ({task.size}, pressure {task.pressure}): loss {out['loss']:.6g}, return {out['return']:.4g} over {len(actions)} steps "
           f"({len(actions) * task.dt:.3g} s); workspace clipped {out['clipped_steps']} steps")
     return 0
 
@@ -274,12 +275,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace a trajectory of the same task and name")
     p.add_argument("--without", nargs="+", default=[], choices=TECHNIQUES, metavar="TECHNIQUE",
                    help="switch DP techniques off, for ablations: " + ", ".join(TECHNIQUES))
+    p.add_argument("--pressure", default="state", choices=("state", "projection"),
+                   help="the liquids' pressure: state (default, weakly compressible) or projection (incompressible, "
+                        "floats bodies at Archimedes' depth; no gradients, so cma-es, sac or ppo only)")
     _add_backend(p)
     p.set_defaults(func=_cmd_optimise)
 
     p = sub.add_parser("evaluate", help="loss and return of a trajectory on its task's reference physics")
     p.add_argument("trajectory", help="a trajectory JSON file")
     p.add_argument("--size", default=None, choices=list(SIZES), help="default: the size it records")
+    p.add_argument("--pressure", default=None, choices=("state", "projection"),
+                   help="the liquids' pressure (default: the one it records, else state)")
     _add_backend(p)
     p.set_defaults(func=_cmd_evaluate)
 

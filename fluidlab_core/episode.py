@@ -12,12 +12,13 @@ import numpy as np
 from fluidlab_core.files import atomic_path
 
 
-def task_for(traj, size: str | None = None):
-    """The task a trajectory was written for, at the size it records (or `size`)."""
+def task_for(traj, size: str | None = None, pressure: str | None = None):
+    """The task a trajectory was written for, at the size and liquid pressure it records (or `size`, `pressure`)."""
     from fluidlab_core import tasks
 
     size = size or traj.metadata.get("size", "small")
-    return tasks.make(traj.task, size=size)
+    pressure = pressure or traj.metadata.get("pressure", "state")
+    return tasks.make(traj.task, size=size, pressure=pressure)
 
 
 def render_episode(traj, out_dir, every: int = 1, mp4: bool = True, size=(640, 480), progress=None,

@@ -104,7 +104,7 @@ class Scene:
         Poisson solve on the grid, with one rigid body's velocity, or the deformable solids' nodes' velocities, as
         unknowns of the same solve, so that a body floats at Archimedes' depth; engine/projection.py). "projection"
         is forward only, for liquids (of one density or several) with one rigid body or deformable solids (not
-        both), without tools, statics, emitters or gas for now (a
+        both), statics and tools (not beside a rigid body), without emitters or gas for now (a
         liquid's bulk viscosity or damping, which act on its pressure, are then dropped: the projection sets the
         pressure; its shear viscosity stays); its flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
@@ -655,10 +655,6 @@ class Scene:
             why.append("gradients (it has a forward solver only; build with requires_grad=False)")
         if self.jbar:
             why.append("jbar (the projection holds the liquid's volume itself)")
-        if self.tools:
-            why.append(f"tools ({', '.join(t.name for t in self.tools)})")
-        if self.statics:
-            why.append(f"statics ({', '.join(s.name for s in self.statics)}); the domain's walls are handled")
         if self.emitters:
             why.append("emitters")
         if self.gas is not None:
@@ -674,6 +670,9 @@ class Scene:
         rigid = [b.handle.name for b in self.bodies if b.handle.material.is_rigid]
         if others and rigid:
             why.append(f"deformable solids ({', '.join(others)}) beside a rigid body")
+        if rigid and (self.statics or self.tools):  # its contact is with the domain's walls alone (rigid.py)
+            kinematic = [s.name for s in self.statics] + [t.name for t in self.tools]
+            why.append(f"a rigid body beside statics or tools ({', '.join(kinematic)})")
         if len(rigid) > 1:
             why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid)}); it couples one")
         if not liquids:

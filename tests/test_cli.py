@@ -59,6 +59,9 @@ def test_optimise_refuses_bad_requests_before_announcing_anything(capsys, tmp_pa
     assert cli.main(["optimise", "Mixing", "--budget", "-5", "--root", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "optimising" not in err and "budget must be a whole number" in err and "got -5" in err
+    assert cli.main(["optimise", "GatheringEasy", "--pressure", "projection", "--root", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "optimising" not in err and "method 'dp' needs the simulator's gradients" in err, err
     assert cli.main(["optimise", "Nope", "--root", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fluidlab: error: unknown task 'Nope'; known tasks: LatteArtStir"), err

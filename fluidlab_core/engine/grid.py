@@ -56,13 +56,20 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
     if m > model.mass_floor:
         vn = mv / m + model.dt * ti.Vector(model.gravity)
         xn = ti.Vector(model.origin) + I * model.dx
-        for k in ti.static(range(len(model.colliders))):
-            vn = model.colliders[k].grid(xn, vn)
-        for k in ti.static(range(model.n_tools)):
-            vn = model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
-                                           state.tool_v_real[k, s], state.tool_w_real[k, s])
-        vn = walls(model, xn, vn)
+        vn = boundary(model, xn, vn, state, s)
     return vn
+
+
+@ti.func
+def boundary(model: ti.template(), xn, vn, state: ti.template(), s):
+    """Velocity vn of the node at xn after the statics', the tools' (at their slot-s pose) and the walls'
+    conditions."""
+    for k in ti.static(range(len(model.colliders))):
+        vn = model.colliders[k].grid(xn, vn)
+    for k in ti.static(range(model.n_tools)):
+        vn = model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
+                                       state.tool_v_real[k, s], state.tool_w_real[k, s])
+    return walls(model, xn, vn)
 
 
 @ti.func

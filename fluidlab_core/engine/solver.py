@@ -486,13 +486,22 @@ class FastSolver(Solver):
         self._p2g_and_grid(state, 0, 0, False, 0, False)
 
     @ti.kernel
+    def projection_p2g_kernel_tools(self, state: ti.template(), twist: ti.types.ndarray()):
+        """The same, with the tools' twists (n_tools, 6) from the host."""
+        self._p2g_and_grid(state, 0, 0, False, twist, True)
+
+    @ti.kernel
     def projection_g2p_kernel(self, state: ti.template()):
         """G2P of a substep with the liquid projection, after the projection."""
         self._g2p_loop(state, 0, 0, False, 0, False)
 
-    def projected_substep(self, state: StateBuffer):
-        """One substep with the liquid's pressure by projection (projection.py's module docstring has the order)."""
-        self.projection_p2g_kernel(state)
+    def projected_substep(self, state: StateBuffer, twist=None):
+        """One substep with the liquid's pressure by projection (projection.py's module docstring has the order),
+        with the tools' twists (n_tools, 6) where the scene has tools."""
+        if self.model.n_tools:
+            self.projection_p2g_kernel_tools(state, twist)
+        else:
+            self.projection_p2g_kernel(state)
         self.proj.project(state)
         self.projection_g2p_kernel(state)
         self.proj.displace(state)
@@ -527,7 +536,7 @@ class FastSolver(Solver):
             twist = control.twists if model.n_tools else np.zeros((1, 6))
         for i in range(model.substeps):
             if self.proj is not None:
-                self.projected_substep(state)
+                self.projected_substep(state, control.twists if model.n_tools else None)
                 continue
             if model.has_emitters:
                 emit = np.stack([counts[i], counts[i + 1], times[i + 1]], axis=1).astype(np.float64)

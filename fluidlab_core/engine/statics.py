@@ -232,6 +232,7 @@ class Collider:
             as a plane at distance φ(x): the contact test counts it as filled."""
             return bspline_cdf(-sdf(x) / dx)
 
+        self.sdf = sdf  # φ(x) in the world frame (m), negative inside (the liquid projection's face shares)
         self.grid = grid
         self.particle = particle
         self.stencil_fill = stencil_fill

@@ -25,6 +25,7 @@ from fluidlab_core.optim.progress import Progress, Result
 PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
 METHODS = (*PAPER_METHODS, "dp-window")
 RESUMABLE = ("dp", "dp-h")  # methods that can continue from a saved state (DP with techniques off too)
+GRADIENT_METHODS = ("dp", "dp-h", "pods", "dp-window")  # methods that need the differentiable simulator
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
@@ -43,7 +44,7 @@ DESCRIPTIONS = {
 
 def check_request(task, method: str, budget, seed):
     """Refuse an optimisation request before any work starts: unknown method, a budget under one rollout of the
-    horizon, a negative seed (each with the reason)."""
+    horizon, a negative seed, a gradient method on a task whose liquid is projected (each with the reason)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
     if not isinstance(budget, (int, np.integer)) or isinstance(budget, bool) or budget < task.horizon:
@@ -51,6 +52,10 @@ def check_request(task, method: str, budget, seed):
                          f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if method in GRADIENT_METHODS and getattr(task, "pressure", "state") == "projection":
+        raise ValueError(f"method {method!r} needs the simulator's gradients, which the liquid projection "
+                         f"(pressure 'projection') does not have yet; use cma-es, sac or ppo on it, or pressure "
+                         f"'state'")
     if method == "dp-window" and not task.loss_is_step_mean:
         raise ValueError(f"method 'dp-window' needs a loss that is a mean over the horizon's steps; {task.name}'s "
                          f"is not (use dp or dp-h)")

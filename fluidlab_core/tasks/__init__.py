@@ -126,12 +126,13 @@ def task_class(name: str) -> type:
     return _registry[name]
 
 
-def make(name: str, size: str = "small") -> Task:
-    """A task by name; size "small" (tests, laptops) or "paper" (the paper's 64³ grid, about 100k particles)."""
+def make(name: str, size: str = "small", pressure: str = "state") -> Task:
+    """A task by name; size "small" (tests, laptops) or "paper" (the paper's 64³ grid, about 100k particles);
+    pressure "state" (the default) or "projection" (forward only: Task.__init__)."""
     cls = task_class(name)
     if size not in SIZES:
         raise ValueError(f"size must be one of {', '.join(SIZES)}, got {size!r}")
-    return cls(size)
+    return cls(size) if pressure == "state" else cls(size, pressure=pressure)
 
 
 __all__ = ["names", "make", "register", "unregister", "task_class", "Task", "SIZES"]

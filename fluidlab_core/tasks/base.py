@@ -91,8 +91,15 @@ class Task:
     # scene (touching where it holds any particle body or emitter); a subclass may set True or False
     touches_particles: bool | None = None
 
-    def __init__(self, size: str = "small"):
+    def __init__(self, size: str = "small", pressure: str = "state"):
+        """size: one of the task's sizes. pressure: the liquids' pressure, "state" (the default, weakly
+        compressible; the physics the tasks' optimised trajectories and benchmarks were found on) or "projection"
+        (incompressible, floats bodies at Archimedes' depth; forward only, so no gradient methods: Scene's
+        `pressure`, engine/projection.py)."""
         self.size = size
+        if pressure not in ("state", "projection"):
+            raise ValueError(f"pressure must be 'state' or 'projection', got {pressure!r}")
+        self.pressure = pressure
         if self.size not in SIZES:
             raise ValueError(f"size must be one of {', '.join(SIZES)}, got {self.size!r}")
         if self.size not in self.sizes:
@@ -129,7 +136,8 @@ class Task:
         _check_contact(contact)
         lower, upper = self._domain()
         cfg = self.config
-        scene = Scene(lower=lower, upper=upper, grid_res=cfg.grid_res, dt=cfg.dt, substeps=1, seed=0)
+        scene = Scene(lower=lower, upper=upper, grid_res=cfg.grid_res, dt=cfg.dt, substeps=1, seed=0,
+                      pressure=self.pressure)
         scene.particle_spacing = cfg.spacing_cells * scene.dx
         self._populate(scene, contact)
         scene.substeps = max(scene.stable_substeps(), 10 if self.size == "paper" else 1)
@@ -312,6 +320,8 @@ class Task:
             pose[:3] = np.clip(tool_position, lo, hi)
         meta = {"size": self.size, "flange_to_tool": list(self.flange_to_tool),
                 "action_axes": list(self.action_axis_names())}
+        if self.pressure != "state":  # the physics it was found on, where not the default
+            meta["pressure"] = self.pressure
         meta.update(metadata or {})
         return Trajectory(task=self.name, dt=self.dt, tool=self.tool_name, initial_pose=pose,
                           twists=self.twists(actions), frame_id=FRAME_ID, method=method, seed=seed,
