@@ -2,6 +2,7 @@
 
     python bench/gathering_projection.py [--tasks GatheringEasy GatheringHard] [--size small]
         [--pressures state projection] [--out bench/results/gathering_projection_small.txt]
+        [--float-seconds S]
 
 For each task and liquid pressure ("state": the default weakly compressible liquid the tasks were optimised on;
 "projection": engine/projection.py, which floats bodies at Archimedes' depth):
@@ -12,6 +13,8 @@ For each task and liquid pressure ("state": the default weakly compressible liqu
   default), its task loss (m², lower is better) and return (the sum of the per-step rewards), and the same for the
   paddle held still (what the trajectory gains over doing nothing);
 - the wall time per simulated step of the shipped rollout (after its first, compiling, call).
+With --float-seconds S, instead: the paddle held still for S seconds, each second's mean share under (both objects)
+and the water's fastest and rms particle speeds at each second's end (the still water's spurious currents).
 Appends its table to the output file.
 """
 from __future__ import annotations
@@ -65,12 +68,39 @@ def run(task_name: str, size: str, pressure: str) -> dict:
     return out
 
 
+def floating(task_name: str, size: str, pressure: str, seconds: float) -> list[str]:
+    """Per-second rows of the objects' share under and the water's speeds, the paddle held still."""
+    import fluidlab_core as fl
+    from fluidlab_core import tasks
+
+    task = tasks.make(task_name, size, pressure=pressure)
+    sim = task.simulator()
+    task.reset(sim)
+    per_second = int(round(1.0 / task.dt))
+    rows = []
+    t0 = time.perf_counter()
+    for second in range(int(round(seconds))):
+        shares = []
+        for _ in range(per_second):
+            sim.step(action=np.zeros(6))
+            shares.append([submerged_share(task, sim, b) for b in ("object_a", "object_b")])
+        a, b = np.mean(shares, axis=0)
+        speed = np.linalg.norm(sim.velocities("water"), axis=1)
+        rows.append(f"{task_name} | {pressure} | {second}-{second + 1} s | {a:.3f}, {b:.3f} | "
+                    f"{speed.max():.3f}, {np.sqrt((speed ** 2).mean()):.4f} | {time.perf_counter() - t0:.0f} s")
+        print(rows[-1], flush=True)
+    fl.runtime.reset()
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tasks", nargs="+", default=["GatheringEasy", "GatheringHard"])
     ap.add_argument("--size", default="small")
     ap.add_argument("--pressures", nargs="+", default=["state", "projection"])
     ap.add_argument("--out", default=None)
+    ap.add_argument("--float-seconds", type=float, default=None, help="the objects' floating over this many seconds "
+                    "instead (the paddle still)")
     args = ap.parse_args(argv)
     import fluidlab_core as fl
 
@@ -79,8 +109,14 @@ def main(argv=None):
     lines = [f"# bench/gathering_projection.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32",
              "# task | pressure | substeps | rest: share under (a, b; Archimedes 0.40) | still: loss, return | "
              "shipped: loss, return | s per step"]
+    if args.float_seconds:
+        lines[1] = ("# task | pressure | second | share under (a, b; Archimedes 0.40) | water's max, rms speed at its "
+                    "end (m/s) | wall time")
     print("\n".join(lines), flush=True)
-    for name in args.tasks:
+    for name in args.tasks if args.float_seconds else ():
+        for pressure in args.pressures:
+            lines += floating(name, args.size, pressure, args.float_seconds)
+    for name in args.tasks if not args.float_seconds else ():
         for pressure in args.pressures:
             r = run(name, args.size, pressure)
             line = (f"{name} | {pressure} | {r['substeps']} | {r['rest_share']['object_a']:.3f}, "

@@ -1,6 +1,8 @@
 """The liquid's pressure by projection, solved with a rigid body's motion (Scene(pressure="projection"),
 engine/projection.py; issue 19): bodies at Archimedes' depth in 3-D, a heavy body on the floor, and what the option
 refuses. CPU, float32, 16 cells across a 12 cm tank (the validation set-up of apps/validation.floating_cube_sim)."""
+import json
+
 import numpy as np
 import pytest
 
@@ -308,3 +310,21 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
     assert pose[0] > 0.47
     assert inside == 0
     assert vx > 0.0
+
+
+def test_a_trajectory_found_on_the_projection_records_it_and_replays_on_it():
+    """A task made with pressure="projection" writes it into the trajectories it makes (metadata.pressure), and the
+    task a trajectory is replayed on (episode.task_for, `fluidlab evaluate`) takes it from there; trajectories of
+    the default liquid carry no such key (the shipped ones were written before it existed). No simulation."""
+    from fluidlab_core import tasks
+    from fluidlab_core.episode import task_for
+    from fluidlab_core.trajectory import Trajectory
+
+    task = tasks.make("GatheringEasy", "small", pressure="projection")
+    written = task.trajectory(np.zeros((task.horizon, task.n_actions)))
+    traj = Trajectory.loads(json.dumps(written.to_dict()))  # through its document, as a file would
+    assert traj.metadata["pressure"] == "projection"
+    assert task_for(traj).pressure == "projection"
+    assert task_for(traj, pressure="state").pressure == "state"
+    plain = tasks.make("GatheringEasy", "small").trajectory(np.zeros((task.horizon, task.n_actions)))
+    assert "pressure" not in plain.metadata and task_for(plain).pressure == "state"
