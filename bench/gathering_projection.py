@@ -106,7 +106,8 @@ def main(argv=None):
 
     fl.init(arch="cpu")
     out = Path(args.out or ROOT / "bench" / "results" / f"gathering_projection_{args.size}.txt")
-    lines = [f"# bench/gathering_projection.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32",
+    lines = [f"# bench/gathering_projection.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32; the "
+             f"tasks' liquid on the projection: APIC (Task.scene)",
              "# task | pressure | substeps | rest: share under (a, b; Archimedes 0.40) | still: loss, return | "
              "shipped: loss, return | s per step"]
     if args.float_seconds:

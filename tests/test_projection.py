@@ -261,9 +261,11 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
     pressure="projection": the statics and the tool close the solve's faces by their share of each face (the tool's
     flux on the right-hand side), and their nodes' stencil shares come from a quadrature of their SDF. Checked:
     - the paddle held still for 1 s: the foam (400 kg/m³) floats with 0.40 ± 0.05 of its particles under the
-      water's fill height over 0.2-1 s (measured 2026-12-05: 0.37; the default liquid sinks it to 0.94,
-      bench/gathering_projection.py), the water stays in the tank (no particle a millimetre inside its walls) and
-      its pressure rises by ρ g (± 3 %) down a column of open water;
+      water's fill height over 0.2-1 s (measured 2026-12-05: 0.38; the default liquid sinks it to 0.94,
+      bench/gathering_projection.py), the water stays still (rms particle speed under 0.01 m/s at 1 s: the tasks'
+      APIC 0.001-0.003; with the Scene's AFLIP 0.99 on the projection it was 0.077 and the fastest particles
+      0.54 m/s, Task.scene) and in the tank (no particle a millimetre inside its walls), and its pressure rises by
+      ρ g (± 3 %) down a column of open water;
     - the paddle pushed 12.5 mm towards the objects at 0.15 m/s: no water inside it (a millimetre deep) and the
       water moves with it (its mean x velocity positive).
     Before the quadrature, statics.bspline_cdf's share from φ alone counted ½ at the tank's inner corners, where ⅞ is
@@ -285,6 +287,8 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
             sim.step(action=np.zeros(6))
             if sim.time > 0.2 - 1e-9:
                 shares.append([(sim.positions(b)[:, 2] < level).mean() for b in ("object_a", "object_b")])
+        speed = np.linalg.norm(sim.velocities("water"), axis=1)
+        rms = float(np.sqrt((speed ** 2).mean()))
         tank = G.S.Tank(G.TANK_LOWER, G.TANK_UPPER, G.TANK_WALL)
         in_walls = int((tank._hollow().sdf(sim.positions("water")) > 1e-3).sum())
         z, p = _pressure_column(sim, (0.54, 0.0))
@@ -298,13 +302,14 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
         inside = int(np.sum((np.abs(local[:, 0]) < 0.5 * tx - 1e-3) & (np.abs(local[:, 1]) < 0.5 * ty - 1e-3)
                             & (local[:, 2] > 1e-3) & (local[:, 2] < tz - 1e-3)))
         vx = float(sim.velocities("water")[:, 0].mean())
-        return np.array(shares), in_walls, slope, len(z), inside, vx, pose
-    shares, in_walls, slope, rows, inside, vx, pose = fresh(run)
+        return np.array(shares), rms, in_walls, slope, len(z), inside, vx, pose
+    shares, rms, in_walls, slope, rows, inside, vx, pose = fresh(run)
     share = float(shares.mean())
     report("projection, Gathering tank", share=share, shares=shares.mean(axis=0).round(3).tolist(), expected=0.40,
-           in_walls=in_walls, slope_rho=slope, rows=rows, paddle_x=float(pose[0]), water_in_paddle=inside,
+           still_rms=rms, in_walls=in_walls, slope_rho=slope, rows=rows, paddle_x=float(pose[0]), water_in_paddle=inside,
            water_vx=vx)
     assert share == pytest.approx(0.40, abs=0.05)
+    assert rms < 0.01
     assert in_walls == 0
     assert rows >= 2 and slope == pytest.approx(1000.0, rel=0.03)
     assert pose[0] > 0.47
