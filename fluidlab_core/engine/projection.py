@@ -1158,10 +1158,9 @@ class LiquidProjection:
                                 ub0 = ql_old[d] + qa_old.cross(xf - c)[d]
                             a = ti.max(1.0 - sig - sk, 0.0)
                             if sk < 1.0 - 1e-6:
-                                # the liquid's and the body's shares; the statics' and tools' not blended in: a
-                                # particle beside a wall gathers the liquid's velocity (with it blended, the faces
-                                # beside a tank's walls carried ½-¼ of the liquid's velocity, and AFLIP's particles,
-                                # keeping what their faces lost, slid down the tank's vertical edges ever faster)
+                                # the liquid's and the body's shares; the statics' and tools' not blended in (their
+                                # share weights the divergence only, as in Batty et al. 2007): a particle beside a
+                                # wall gathers the liquid's velocity, not ½-¼ of it (a no-slip wall a cell thick)
                                 u = (a * u + sig * ub) / (1.0 - sk)
                                 u0 = (a * u0 + sig * ub0) / (1.0 - sk)
                             else:  # closed by them: their velocity
