@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
@@ -81,8 +83,6 @@ def main():
     sim, scene = sims["projection"]
     solver = sim.solver
     proj = solver.proj
-    import numpy as np
-
     still = np.zeros((max(solver.model.n_tools, 1), 6))  # the tools held still
     p2g = (lambda st: solver.projection_p2g_kernel_tools(st, still)) if solver.model.n_tools \
         else (lambda st: solver.projection_p2g_kernel(st))

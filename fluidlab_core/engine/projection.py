@@ -392,24 +392,26 @@ class LiquidProjection:
         return ti.min(ti.max(th, THETA_MIN), 1.0)
 
     @ti.func
-    def _sig(self, I, d: ti.template(), sgn: ti.template()):
-        """σ of the face from node I to I + sgn e_d (sig_p, set by rhs for this projection)."""
+    def _face(self, f: ti.template(), I, d: ti.template(), sgn: ti.template()):
+        """A per-face quantity f (a Vector field of the faces I + ½e_d) on the face from node I to I + sgn e_d."""
         out = ti.f64(0.0)
         if ti.static(sgn > 0):
-            out = self.sig_p[I][d]
+            out = f[I][d]
         else:
-            out = self.sig_p[I - ti.Vector.unit(3, d, ti.i32)][d]
+            out = f[I - ti.Vector.unit(3, d, ti.i32)][d]
         return out
+
+    @ti.func
+    def _sig(self, I, d: ti.template(), sgn: ti.template()):
+        """σ of the face from node I to I + sgn e_d (sig_p, set by rhs for this projection)."""
+        return self._face(self.sig_p, I, d, sgn)
 
     @ti.func
     def _sk(self, I, d: ti.template(), sgn: ti.template()):
         """The statics' and tools' share of the face from node I to I + sgn e_d (0 without any)."""
         out = ti.f64(0.0)
         if ti.static(self.has_kin):
-            if ti.static(sgn > 0):
-                out = self.sig_k[I][d]
-            else:
-                out = self.sig_k[I - ti.Vector.unit(3, d, ti.i32)][d]
+            out = self._face(self.sig_k, I, d, sgn)
         return out
 
     @ti.func
@@ -417,10 +419,7 @@ class LiquidProjection:
         """The tools' flux Σ σ_t u_t·e_d through the face from node I to I + sgn e_d (m/s; 0 without tools)."""
         out = ti.f64(0.0)
         if ti.static(self.has_kin):
-            if ti.static(sgn > 0):
-                out = self.k_flux[I][d]
-            else:
-                out = self.k_flux[I - ti.Vector.unit(3, d, ti.i32)][d]
+            out = self._face(self.k_flux, I, d, sgn)
         return out
 
     @ti.func
