@@ -407,26 +407,20 @@ class LiquidProjection:
         return self._face(self.sig_p, I, d, sgn)
 
     @ti.func
-    def _sk(self, I, d: ti.template(), sgn: ti.template()):
-        """The statics' and tools' share of the face from node I to I + sgn e_d (0 without any)."""
-        out = ti.f64(0.0)
+    def _kin(self, I, d: ti.template(), sgn: ti.template()):
+        """The statics' and tools' share of the face from node I to I + sgn e_d, and the tools' flux Σ σ_t u_t·e_d
+        through it (m/s); both 0 without statics or tools."""
+        share, flux = ti.f64(0.0), ti.f64(0.0)
         if ti.static(self.has_kin):
-            out = self._face(self.sig_k, I, d, sgn)
-        return out
-
-    @ti.func
-    def _kflux(self, I, d: ti.template(), sgn: ti.template()):
-        """The tools' flux Σ σ_t u_t·e_d through the face from node I to I + sgn e_d (m/s; 0 without tools)."""
-        out = ti.f64(0.0)
-        if ti.static(self.has_kin):
-            out = self._face(self.k_flux, I, d, sgn)
-        return out
+            share, flux = self._face(self.sig_k, I, d, sgn), self._face(self.k_flux, I, d, sgn)
+        return share, flux
 
     @ti.func
     def _open(self, I, d: ti.template(), sgn: ti.template()):
         """The liquid's open share a_f of the face from I to I + sgn e_d: what the body, the deformable solids,
         the statics and the tools leave of it."""
-        return ti.max(1.0 - self._sig(I, d, sgn) - self._sk(I, d, sgn), 0.0)
+        sk, _ = self._kin(I, d, sgn)
+        return ti.max(1.0 - self._sig(I, d, sgn) - sk, 0.0)
 
     @ti.func
     def _soft_face(self, I, J, d: ti.template(), v: ti.template()):
@@ -674,7 +668,8 @@ class LiquidProjection:
                     for d in ti.static(range(3)):
                         for sgn in ti.static((-1, 1)):
                             if self._inside(I + sgn * ti.Vector.unit(3, d, ti.i32)):
-                                open_share += 1.0 - self._sk(I, d, sgn)
+                                sk, _ = self._kin(I, d, sgn)
+                                open_share += 1.0 - sk
                     if open_share < OPEN_MIN:
                         self.kind[I] = ti.cast(WALL, ti.i8)
                         self.vs[I] = self.k_v[I]
@@ -813,7 +808,8 @@ class LiquidProjection:
                                     uf = 0.5 * (self.vs[I][d] + self.vs[J][d])
                                     dg += fw * a * self._beta(I, J)
                                 Kt = self._K(I, d, sgn)
-                                div += sgn * fw * (a * uf + self._kflux(I, d, sgn))
+                                _, kflux = self._kin(I, d, sgn)
+                                div += sgn * fw * (a * uf + kflux)
                                 if ti.static(self.has_soft):  # the solids' flux through the face's share σ
                                     div += sgn * fw * sig * self._soft_face(I, J, d, self.soft_v)
                                 wgt = ti.f64(1.0)  # a solid face's weight moved to the surface's crossing

@@ -52,7 +52,7 @@ def check_request(task, method: str, budget, seed):
                          f"({task.horizon} steps for {task.name}, {task.size}), got {budget!r}")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if method in GRADIENT_METHODS and getattr(task, "pressure", "state") == "projection":
+    if method in GRADIENT_METHODS and task.pressure == "projection":
         raise ValueError(f"method {method!r} needs the simulator's gradients, which the liquid projection "
                          f"(pressure 'projection') does not have yet; use cma-es, sac or ppo on it, or pressure "
                          f"'state'")

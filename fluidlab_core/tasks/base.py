@@ -90,6 +90,9 @@ class Task:
     # without (a gas task) builds one simulator for both, not two that compile the same kernels. None: from the
     # scene (touching where it holds any particle body or emitter); a subclass may set True or False
     touches_particles: bool | None = None
+    # the liquids' pressure ("state" or "projection"), set by __init__; the class default keeps a plugin task whose
+    # own __init__ does not call this one on the default liquid
+    pressure = "state"
 
     def __init__(self, size: str = "small", pressure: str = "state"):
         """size: one of the task's sizes. pressure: the liquids' pressure, "state" (the default, weakly
