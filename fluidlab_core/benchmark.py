@@ -2,6 +2,7 @@
 
     python -m fluidlab_core.benchmark [--tasks ...] [--methods dp dp-h cma-es sac ppo pods] [--seeds 0 1 2]
         [--rollouts 150] [--size small] [--out bench/results/benchmark_small] [--jobs 2] [--ray-address ADDR]
+        [--pressure state|projection]
     fluidlab benchmark ...            (the same)
 
 What a run is. One optimisation of one task by one method (optim.METHODS: the paper's six by default, sac, ppo
@@ -29,6 +30,12 @@ local Ray starts with `--jobs` CPUs (default: all cores), one run per CPU, and e
 `--threads` threads (default: cores / jobs). Pass `--ray-address auto` (or host:port) to use a running
 cluster: start it with `ray start --head` here and `ray start --address HOST:6379` on the other machines. Each
 machine needs only this package installed. Without Ray, runs go to a pool of `--jobs` processes.
+
+The liquid. `--pressure projection` runs the tasks on the projected, incompressible liquid (engine/projection.py,
+which floats bodies at Archimedes' depth) instead of the default weakly compressible one: forward only, so the
+gradient methods (dp, dp-h, pods, dp-window and DP's ablations) are refused there with the reason, and CMA-ES, SAC
+and PPO run. Its runs' keys and file names end in 'projection', their records say `pressure`, the default folder is
+bench/results/benchmark_SIZE_projection, and `--reevaluate` replays each run on the liquid it ran on.
 
 Re-evaluating. `--reevaluate` replays every finished run's trajectory on the engine installed now and appends the
 losses to OUT/reevaluated.jsonl (resumable; delete it to re-measure after another engine change); the table then
@@ -70,14 +77,19 @@ FLAT_TOLERANCE = 0.01
 
 
 def run_key(spec: dict) -> str:
-    """The identity of a run in runs.jsonl."""
-    return f"{spec['task']}|{spec['method']}|{spec['seed']}|{spec['size']}|{spec['budget']}"
+    """The identity of a run in runs.jsonl (a run on the projected liquid ends in '|projection'; the default
+    liquid's keys are those of the sweeps before the option)."""
+    key = f"{spec['task']}|{spec['method']}|{spec['seed']}|{spec['size']}|{spec['budget']}"
+    pressure = spec.get("pressure", "state")
+    return key if pressure == "state" else f"{key}|{pressure}"
 
 
 def _record(spec: dict, task=None, **fields) -> dict:
     """A run's record: its identity, where it ran, the task's constants when built, then `fields`."""
     rec = {**{k: spec[k] for k in ("task", "method", "seed", "size", "budget")}, "key": run_key(spec),
            "host": os.uname().nodename}
+    if spec.get("pressure", "state") != "state":
+        rec["pressure"] = spec["pressure"]
     if task is not None:
         rec.update(horizon=task.horizon, reward_c1=task.reward_c1, reward_c2=task.reward_c2,
                    threads=spec.get("threads"))
@@ -87,9 +99,16 @@ def _record(spec: dict, task=None, **fields) -> dict:
 PARTIAL_FORMAT = "fluidlab-benchmark-partial"
 
 
+def run_name(spec: dict) -> str:
+    """A run's file name: TASK_METHOD_seedS_SIZE, with _projection on the projected liquid."""
+    name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
+    pressure = spec.get("pressure", "state")
+    return name if pressure == "state" else f"{name}_{pressure}"
+
+
 def partial_path(spec: dict) -> Path:
     """Where a resumable run keeps its latest snapshot."""
-    return Path(spec["out"]) / "partial" / f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}.npz"
+    return Path(spec["out"]) / "partial" / f"{run_name(spec)}.npz"
 
 
 def save_partial(path: Path, spec: dict, opt_state: dict, bench: dict):
@@ -139,7 +158,7 @@ def run_job(spec: dict) -> dict:
         from fluidlab_core.trajectory_store import TrajectoryStore, report_path
 
         fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
-        task = tasks.make(spec["task"], size=spec["size"])
+        task = tasks.make(spec["task"], size=spec["size"], pressure=spec.get("pressure", "state"))
         budget = int(spec["budget"])
         if spec["method"] == STILL:  # the reference row: the tool kept still, one rollout
             t0 = time.perf_counter()
@@ -201,7 +220,7 @@ def run_job(spec: dict) -> dict:
         if not curve or curve[-1][0] < traj.metadata["steps_used"]:
             curve.append([int(traj.metadata["steps_used"]), final, round(wall, 3)])
         store = TrajectoryStore(Path(spec["out"]) / "trajectories")
-        name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
+        name = run_name(spec)
         path = traj.save(store.new_path(task.name, name, overwrite=True))
         record = _record(spec, task, final_loss=final, steps_used=int(traj.metadata["steps_used"]),
                          iterations=int(traj.metadata["iterations"]), settings=traj.metadata.get("settings", {}),
@@ -337,6 +356,12 @@ def _loss_at(curve, axis: int, at: float) -> float:
     return float(vals[-1]) if vals else float("nan")
 
 
+def _liquid(runs: list[dict]) -> str:
+    """The tables' note of the liquid the runs ran on, where it is not the default."""
+    kinds = sorted({r.get("pressure", "state") for r in runs})
+    return "" if kinds == ["state"] else f", liquid pressure {' and '.join(kinds)}"
+
+
 def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None = None) -> str:
     """now: {run key: final loss re-evaluated on today's engine} (`reevaluate`); shown after each row whose seeds
     all have one."""
@@ -346,7 +371,8 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
     lines = []
     if ok:
         lines.append(f"Final loss and reward return on the reference physics (hard contact), mean ± std over seeds; "
-                     f"size {ok[0]['size']}, the budget per run under each task. Lower loss, higher return is better.")
+                     f"size {ok[0]['size']}{_liquid(ok)}, the budget per run under each task. Lower loss, higher return "
+                     f"is better.")
         lines.append("A run's loss at a point of its budget is the reference loss of its best iterate (best by the "
                      "optimiser's own loss) at its last checkpoint by then. 'flat': seeds whose loss fell < 1 % over "
                      "the last 20 % of the budget. 'loss @ equal wall': each method's loss by the wall time of the "
@@ -427,7 +453,7 @@ def paper_table(runs: list[dict]) -> str:
         consts.append(f"{t} {r['reward_c1']:g} − {r['reward_c2']:g} ℓ over {r['horizon']} steps")
     lines.append("")
     lines.append(f"Reward return Σ_k (c1 − c2 ℓ_k) on the reference physics, mean ± std over {usual} seeds, "
-                 f"size {ok[0]['size']}, {ok[0]['budget'] // ok[0]['horizon']} rollouts per run. Per task: "
+                 f"size {ok[0]['size']}{_liquid(ok)}, {ok[0]['budget'] // ok[0]['horizon']} rollouts per run. Per task: "
                  + "; ".join(consts) + ".")
     return "\n".join(lines)
 
@@ -567,9 +593,11 @@ def _executor(jobs: int, threads: int, ray_address: str | None, use_ray: bool):
 def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int, size: str, out: Path,
           jobs: int | None = None, threads: int | None = None, ray_address: str | None = None,
           use_ray: bool | None = None, min_generations: int = 30, checkpoints: int = 10, arch: str = "cpu",
-          log=print, baseline: bool = True, snapshot_minutes: float = 5.0) -> list[dict]:
+          log=print, baseline: bool = True, snapshot_minutes: float = 5.0, pressure: str = "state") -> list[dict]:
     """Run what is not yet in OUT/runs.jsonl, append each run as it finishes, then write the table and plots.
-    Returns every record of the sweep (finished before or now)."""
+    pressure: the tasks' liquid, "state" (default) or "projection" (forward only: the gradient methods are refused
+    there, each with the reason, and the sweep goes on with the others). Returns every record of the sweep
+    (finished before or now)."""
     from fluidlab_core import optim, tasks
     from fluidlab_core.optim import cmaes
 
@@ -591,12 +619,18 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     runs_path = out / "runs.jsonl"
     specs, refused = [], []
     for name in tasks_:
-        task = tasks.make(name, size=size)  # refuses an unknown task or size by name
+        task = tasks.make(name, size=size, pressure=pressure)  # refuses an unknown task, size or pressure by name
         budget = int(rollouts) * task.horizon
         if baseline:
             specs.append({"task": name, "method": STILL, "seed": 0, "size": size, "budget": budget, "arch": arch,
-                          "threads": threads, "out": str(out.resolve())})
+                          "threads": threads, "out": str(out.resolve()), "pressure": pressure})
         for m in methods:
+            if m in ABLATIONS or m in optim.GRADIENT_METHODS:
+                try:  # a gradient method on the projected liquid, which has no gradients yet
+                    optim.check_request(task, "dp" if m in ABLATIONS else m, budget, 0)
+                except ValueError as err:
+                    refused.append({"task": name, "method": m, "why": str(err)})
+                    continue
             if m == "dp-window":
                 try:
                     optim.check_request(task, m, budget, 0)  # refuses a task whose loss is not a mean over steps
@@ -613,7 +647,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
                 specs.append({"task": name, "method": m, "seed": int(s), "size": size, "budget": budget,
                               "arch": arch, "threads": threads, "min_generations": int(min_generations),
                               "checkpoints": int(checkpoints), "out": str(out.resolve()),
-                              "snapshot_minutes": float(snapshot_minutes)})
+                              "snapshot_minutes": float(snapshot_minutes), "pressure": pressure})
     for r in refused:
         log(f"refused: {r['task']} {r['method']}: {r['why']}")
     previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
@@ -673,6 +707,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a resumable run (dp, dp-h, ablations) saves its state to OUT/partial/ this often, and a "
                     "sweep started again continues it from there (default 5)")
     ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--pressure", default="state", choices=["state", "projection"],
+                    help="the tasks' liquid: state (default, weakly compressible) or projection (incompressible, "
+                    "floats bodies at Archimedes' depth; no gradients, so the gradient methods are refused; default "
+                    "--out bench/results/benchmark_SIZE_projection)")
     ap.add_argument("--reevaluate", action="store_true",
                     help="replay every finished run's trajectory on this engine (OUT/reevaluated.jsonl, resumable; the "
                     "table then shows each method's loss 'now' beside the recorded one), write the report, run nothing "
@@ -711,9 +749,10 @@ def reevaluate(out: Path, tasks_=None, arch: str = "cpu", threads: int | None = 
     built = {}
     for i, r in enumerate(todo):
         t0 = time.perf_counter()
-        if (r["task"], r["size"]) not in built:
-            built[r["task"], r["size"]] = tasks.make(r["task"], size=r["size"])
-        task = built[r["task"], r["size"]]
+        which = (r["task"], r["size"], r.get("pressure", "state"))
+        if which not in built:
+            built[which] = tasks.make(r["task"], size=r["size"], pressure=which[2])
+        task = built[which]
         if r["method"] == STILL:
             result = task.evaluate(np.zeros((task.horizon, task.n_actions)))
         else:
@@ -777,7 +816,8 @@ def _dispatch(args, default_methods):
     parser's, which a report reads as "every method")."""
     from fluidlab_core import tasks
 
-    out = Path(args.out or f"bench/results/benchmark_{args.size}")
+    suffix = "" if args.pressure == "state" else f"_{args.pressure}"
+    out = Path(args.out or f"bench/results/benchmark_{args.size}{suffix}")
     if args.reevaluate:
         reevaluate(out, args.tasks, args.arch, args.threads)
     if args.merge:
@@ -787,7 +827,7 @@ def _dispatch(args, default_methods):
         return
     sweep(args.tasks or tasks.names(), args.methods, args.seeds, args.rollouts, args.size, out, args.jobs,
           args.threads, args.ray_address, False if args.no_ray else None, args.min_generations,
-          args.checkpoints, args.arch, snapshot_minutes=args.snapshot_minutes)
+          args.checkpoints, args.arch, snapshot_minutes=args.snapshot_minutes, pressure=args.pressure)
 
 
 if __name__ == "__main__":

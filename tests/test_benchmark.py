@@ -296,3 +296,22 @@ def test_merge_adds_another_folders_runs_once_and_refuses_other_physics(tmp_path
                             "recorded_final_loss": 5e-3}) + "\n")
     added = benchmark.merge(other, main, log=lambda *_: None)
     assert [r["key"] for r in added] == ["GatheringEasy|pods|0|medium|100"]
+
+
+def test_a_sweep_on_the_projected_liquid_refuses_the_gradient_methods_and_keeps_its_runs_apart(tmp_path):
+    """--pressure projection: the gradient methods and DP's ablations are refused with the reason (the projection has
+    no gradients), before anything runs; the runs' keys and file names say the liquid, so that they never collide with
+    the default liquid's runs of the same task, method, seed and budget."""
+    logs = []
+    records = benchmark.sweep(["GatheringEasy"], ["dp", "dp-h", "pods", "dp-no-sharing"], [0], 8, "small", tmp_path,
+                              jobs=1, use_ray=False, log=logs.append, baseline=False, pressure="projection")
+    assert records == [] and not (tmp_path / "runs.jsonl").exists()
+    refused = [line for line in logs if line.startswith("refused: GatheringEasy") and "\n" not in line]
+    assert len(refused) == 4 and all("needs the simulator's gradients" in line for line in refused), logs
+    assert "0 runs in the sweep" in " ".join(logs) and "refused: GatheringEasy pods" in logs[-1]  # under the table
+    spec = {"task": "GatheringEasy", "method": "cma-es", "seed": 0, "size": "small", "budget": 800}
+    assert benchmark.run_key(spec) == "GatheringEasy|cma-es|0|small|800"  # the default liquid's keys as before
+    assert benchmark.run_key({**spec, "pressure": "projection"}) == "GatheringEasy|cma-es|0|small|800|projection"
+    assert benchmark.run_name({**spec, "pressure": "projection"}) == "GatheringEasy_cma-es_seed0_small_projection"
+    assert benchmark._record({**spec, "pressure": "projection"})["pressure"] == "projection"
+    assert "pressure" not in benchmark._record(spec)
