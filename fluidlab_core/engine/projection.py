@@ -214,6 +214,12 @@ class LiquidProjection:
         self.bt = ti.Vector.field(3, f64, shape=shape)  # and torque part (m)
         self.mic = ti.field(f64, shape=shape)  # 1/√e of the MIC(0) factor's diagonal
         self.mic_q = ti.field(f64, shape=shape)  # and the forward sweep's result
+        # the unknowns in lexicographic order (mic0 lists them once per projection, for both solves): the CG's
+        # kernels run over these alone, not over the whole grid (the liquid fills a quarter of GatheringEasy's grid)
+        self.unk = ti.Vector.field(3, ti.i32, shape=int(np.prod(shape)))
+        self.n_unk = ti.field(ti.i32, shape=())
+        self.cg_rz = ti.field(f64, shape=())  # the CG's r·z and next β, kept on the device between its launches
+        self.cg_beta = ti.field(f64, shape=())
         self.disp = ti.Vector.field(3, real, shape=shape)  # the position correction's −∇ψ at liquid nodes (m)
         self.uf = ti.Vector.field(3, real, shape=shape)  # face I + ½e_d's velocity after the solve (m/s)
         self.uf0 = ti.Vector.field(3, real, shape=shape)  # and before gravity and the solve (AFLIP's v⁰)
@@ -235,6 +241,8 @@ class LiquidProjection:
             self.soft_m = ti.field(f64, shape=shape)  # the solids' node mass (kg)
             self.soft_v = ti.Vector.field(3, f64, shape=shape)  # their velocity v* before the solve (m/s)
             self.soft_dv = ti.Vector.field(3, f64, shape=shape)  # G_K/m_K of the CG's x (soft_of; 1/(m s))
+            self.soft_nodes = ti.Vector.field(3, ti.i32, shape=int(np.prod(shape)))  # the nodes with solids' mass
+            self.n_soft = ti.field(ti.i32, shape=())  # (not walls'), listed by mic0 for the CG's soft_of
         dx = float(model.dx)
         if self.has_body:
             self._body_share = face_share_func(model.rigid.sdfs[0], dx)
@@ -445,7 +453,8 @@ class LiquidProjection:
     def _soft_of(self, x: ti.template()):
         """soft_dv_K = G_K/m_K, G_K = Σ_f c_fK σ_f w_f s (x_K − x_J) e_d over the faces f from K to J = K + s e_d
         (x = 0 off the unknowns): the solids' generalised force of the pressure x, over Δx², by node."""
-        for K in ti.grouped(self.kind):
+        for n in range(self.n_soft[None]):  # soft_dv is 0 elsewhere (classify)
+            K = self.soft_nodes[n]
             G = ti.Vector.zero(ti.f64, 3)
             mk = self.soft_m[K]
             if mk > 0.0 and self.kind[K] != WALL:
@@ -687,6 +696,11 @@ class LiquidProjection:
         pocket node then. Starting from the body's each substep, the liquid flowing into the gap under a lifting
         body stopped every substep, and the solve's pressure, re-accelerating it, held a cube stood on the floor
         at 24 cells down (0.15 mm up, then back; docs/engine.md)."""
+        if not self.has_body or not np.any(self.model.gravity):  # no pockets (_pocket_mask): the kinds stay here
+            n_liq, n_air = self._counts()
+            if (n_liq > 0 and n_air == 0) or self._pinned:
+                self._pin_node(self.kind.to_numpy())
+            return
         kind = self.kind.to_numpy()
         self._pin_node(kind)
         mask = self._pocket_mask(kind)
@@ -698,6 +712,17 @@ class LiquidProjection:
         self.enclosed.from_numpy(mask)
         self._pockets = True
         self._wet_enclosed()
+
+    @ti.kernel
+    def _counts(self) -> ti.types.vector(2, ti.i32):
+        """The liquid and air nodes' counts."""
+        n_liq, n_air = 0, 0
+        for I in ti.grouped(self.kind):
+            if self.kind[I] == LIQ:
+                n_liq += 1
+            elif self.kind[I] == AIR:
+                n_air += 1
+        return ti.Vector([n_liq, n_air])
 
     def _pin_node(self, kind):
         """With no air node the liquid fills the domain and both solves are pure Neumann problems, singular (p up
@@ -852,9 +877,9 @@ class LiquidProjection:
                 w = self.aoff[I][k]
                 if w != 0.0:
                     out -= w * x[I + sgn * ti.Vector.unit(3, d, ti.i32)] / (dx * dx)
-        # Δx b_I · M⁻¹ Σ_J x_J b_J (bx set by _bx_of beforehand)
-        out += dx * (self.bf[I].dot(self.bx_f[None]) * self.minv_m[None]
-                     + self.bt[I].dot(self.minv_I[None] @ self.bx_t[None]))
+        if ti.static(self.has_body):  # Δx b_I · M⁻¹ Σ_J x_J b_J (bx set by _bx_of beforehand)
+            out += dx * (self.bf[I].dot(self.bx_f[None]) * self.minv_m[None]
+                         + self.bt[I].dot(self.minv_I[None] @ self.bx_t[None]))
         if ti.static(self.has_soft):
             out += self._soft_A(I)
         return out
@@ -865,8 +890,9 @@ class LiquidProjection:
             self._soft_of(x)
         self.bx_f[None] = ti.Vector.zero(ti.f64, 3)
         self.bx_t[None] = ti.Vector.zero(ti.f64, 3)
-        for I in ti.grouped(self.kind):
-            if self._unknown(I):
+        if ti.static(self.has_body):  # b_I is the body's: 0 without one
+            for n in range(self.n_unk[None]):  # (listed by mic0)
+                I = self.unk[n]
                 self.bx_f[None] += x[I] * self.bf[I]
                 self.bx_t[None] += x[I] * self.bt[I]
 
@@ -915,32 +941,36 @@ class LiquidProjection:
         return s
 
     @ti.kernel
-    def _apply_dot(self) -> ti.f64:
-        s = ti.f64(0.0)
+    def _iterate(self) -> ti.types.vector(2, ti.f64):
+        """One CG iteration in one launch (each launch costs the host 50-80 µs on the CPU, as much as the iteration's
+        arithmetic at the tasks' sizes): d = z + β d, A d, α = r·z/(d·A d), p += α d, r −= α A d, z = M⁻¹ r, and β
+        for the next. Returns (r·r, d·A d); with d·A d ≤ 0 (breakdown) α is 0 and p stays. Loops over the unknowns
+        only (d, z are 0 elsewhere, from _start)."""
+        beta = self.cg_beta[None]
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            self.d[I] = self.z[I] + beta * self.d[I]
         self._bx_of(self.d)
-        for I in ti.grouped(self.kind):
-            self.Ad[I] = 0.0
-            if self._unknown(I):
-                self.Ad[I] = self._A(self.d, I)
-                s += self.d[I] * self.Ad[I]
-        return s
-
-    @ti.kernel
-    def _update(self, alpha: ti.f64) -> ti.f64:
-        """p += α d, r −= α A d; returns r·r."""
+        pAp = ti.f64(0.0)
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            self.Ad[I] = self._A(self.d, I)
+            pAp += self.d[I] * self.Ad[I]
+        alpha = ti.select(pAp > 0.0, self.cg_rz[None] / ti.max(pAp, 1e-300), 0.0)
         rr = ti.f64(0.0)
-        for I in ti.grouped(self.kind):
-            if self._unknown(I):
-                self.p[I] += alpha * self.d[I]
-                self.r[I] -= alpha * self.Ad[I]
-                rr += self.r[I] * self.r[I]
-        return rr
-
-    @ti.kernel
-    def _direction(self, beta: ti.f64):
-        for I in ti.grouped(self.kind):
-            if self._unknown(I):
-                self.d[I] = self.z[I] + beta * self.d[I]
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            self.p[I] += alpha * self.d[I]
+            self.r[I] -= alpha * self.Ad[I]
+            rr += self.r[I] * self.r[I]
+        self._sweeps()
+        rz = ti.f64(0.0)
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            rz += self.r[I] * self.z[I]
+        self.cg_beta[None] = ti.select(self.cg_rz[None] > 0.0, rz / ti.max(self.cg_rz[None], 1e-300), 0.0)
+        self.cg_rz[None] = rz
+        return ti.Vector([rr, pAp])
 
     @ti.func
     def _aplus(self, I, d: ti.template()):
@@ -951,11 +981,20 @@ class LiquidProjection:
     def mic0(self):
         """The MIC(0) factor of the sparse part (the body's rank-6 term is left to the CG), once per projection."""
         nx, ny, nz = ti.static(self.model.grid_shape)
+        self.n_unk[None] = 0
+        if ti.static(self.has_soft):
+            self.n_soft[None] = 0
         ti.loop_config(serialize=True)
         for i, j, k in ti.ndrange(nx, ny, nz):
             I = ti.Vector([i, j, k])
+            if ti.static(self.has_soft):  # (classify zeroed soft_dv)
+                if self.soft_m[I] > 0.0 and self.kind[I] != WALL:
+                    self.soft_nodes[self.n_soft[None]] = I
+                    self.n_soft[None] += 1
             self.mic[I] = 0.0
             if self._unknown(I):
+                self.unk[self.n_unk[None]] = I  # lexicographic: the sweeps' order
+                self.n_unk[None] += 1
                 ad = self.diag[I]
                 e = ad
                 for d in ti.static(range(3)):
@@ -973,37 +1012,39 @@ class LiquidProjection:
                     e = ad
                 self.mic[I] = 1.0 / ti.sqrt(e)
 
+    @ti.func
+    def _sweeps(self):
+        """z = M⁻¹ r by the two sweeps of the MIC(0) factor (serial, in the unknowns' lexicographic order). A
+        neighbour that is no unknown counts for nothing: mic is 0 there (mic0), and z is 0 there (_start)."""
+        ti.loop_config(serialize=True)
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            t = self.r[I]
+            for d in ti.static(range(3)):
+                Im = I - ti.Vector.unit(3, d, ti.i32)
+                if Im[d] >= 0:
+                    t -= self._aplus(Im, d) * self.mic[Im] * self.mic_q[Im]
+            self.mic_q[I] = t * self.mic[I]
+        ti.loop_config(serialize=True)
+        for n_ in range(self.n_unk[None]):
+            I = self.unk[self.n_unk[None] - 1 - n_]
+            t = self.mic_q[I]
+            for d in ti.static(range(3)):
+                Ip = I + ti.Vector.unit(3, d, ti.i32)
+                if Ip[d] < self.model.grid_shape[d]:
+                    t -= self._aplus(I, d) * self.mic[I] * self.z[Ip]
+            self.z[I] = t * self.mic[I]
+
     @ti.kernel
-    def _precond(self) -> ti.f64:
-        """z = M⁻¹ r by the two sweeps of the MIC(0) factor (serial, lexicographic); returns r·z."""
-        nx, ny, nz = ti.static(self.model.grid_shape)
-        ti.loop_config(serialize=True)
-        for i, j, k in ti.ndrange(nx, ny, nz):
-            I = ti.Vector([i, j, k])
-            self.mic_q[I] = 0.0
-            if self._unknown(I):
-                t = self.r[I]
-                for d in ti.static(range(3)):
-                    Im = I - ti.Vector.unit(3, d, ti.i32)
-                    if Im[d] >= 0:
-                        t -= self._aplus(Im, d) * self.mic[Im] * self.mic_q[Im]
-                self.mic_q[I] = t * self.mic[I]
-        ti.loop_config(serialize=True)
-        for i_, j_, k_ in ti.ndrange(nx, ny, nz):
-            I = ti.Vector([nx - 1 - i_, ny - 1 - j_, nz - 1 - k_])
-            self.z[I] = 0.0
-            if self._unknown(I):
-                t = self.mic_q[I]
-                for d in ti.static(range(3)):
-                    Ip = I + ti.Vector.unit(3, d, ti.i32)
-                    if Ip[d] < self.model.grid_shape[d]:
-                        t -= self._aplus(I, d) * self.mic[I] * self.z[Ip]
-                self.z[I] = t * self.mic[I]
+    def _precond(self):
+        """z = M⁻¹ r (_sweeps), r·z into cg_rz and β = 0: the CG's first direction is z."""
+        self._sweeps()
         rz = ti.f64(0.0)
-        for I in ti.grouped(self.kind):
-            if self._unknown(I):
-                rz += self.r[I] * self.z[I]
-        return rz
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            rz += self.r[I] * self.z[I]
+        self.cg_rz[None] = rz
+        self.cg_beta[None] = 0.0
 
     @ti.kernel
     def _zero(self):
@@ -1014,21 +1055,14 @@ class LiquidProjection:
         """Preconditioned CG on (A_a + Δx B M⁻¹ Bᵀ) p = b from the p held (warm start) to the relative residual
         `tol`; appends its iterations. b = 0 gives p = 0 (not the warm start)."""
         self._start()
-        rz = self._precond()
-        self._direction(0.0)  # d = z
+        self._precond()
         bn = np.sqrt(self._norm(self.b))
         it = 0
         if bn > 0:
             for it in range(1, MAX_IT + 1):
-                pAp = self._apply_dot()
-                if pAp <= 0:
+                rr, pAp = self._iterate()
+                if pAp <= 0 or np.sqrt(rr) <= tol * bn:
                     break
-                rr = self._update(rz / pAp)
-                if np.sqrt(rr) <= tol * bn:
-                    break
-                rz_new = self._precond()
-                self._direction(rz_new / rz)
-                rz = rz_new
         else:
             self._zero()
         iterations.append(it)
