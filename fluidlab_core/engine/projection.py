@@ -16,7 +16,9 @@ Per substep (FastSolver.projected_substep):
     classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
                   (p = 0), WALL (beyond the walls' rows), BSOLID (inside the body, deeper than a cell; moving with it)
     enclose_air   an air pocket the body borders that no path of air joins to the top is liquid (below)
-    solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started)
+    solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started; over a
+                  list of the unknowns, one kernel launch an iteration: each launch costs the host 50-80 µs on the
+                  CPU, as much as an iteration's arithmetic at the tasks' sizes)
     correct       u = u* − Δt/ρ ∇p on the faces; q = q* + Δt M⁻¹ Q
     G2P           the liquid's particles gather u and C from the faces (a staggered grid), with AFLIP
     position      particles of a packed liquid move down the gradient of a second potential (below)
@@ -93,6 +95,7 @@ docs/experiments/README.md.
 import numpy as np
 import taichi as ti
 
+from fluidlab_core import runtime
 from fluidlab_core.engine import grid, transfer
 
 AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
@@ -220,6 +223,11 @@ class LiquidProjection:
         self.n_unk = ti.field(ti.i32, shape=())
         self.cg_rz = ti.field(f64, shape=())  # the CG's r·z and next β, kept on the device between its launches
         self.cg_beta = ti.field(f64, shape=())
+        self.cg_its = ti.field(ti.i32, shape=())  # _solve_serial's iterations, and its |b|²
+        self.cg_bn2 = ti.field(f64, shape=())
+        # the CG as one serial launch (_solve_serial) on the CPU, one parallel launch an iteration (_iterate) on a GPU,
+        # whose threads a serial loop would idle; set before the first substep to choose (read when compiling)
+        self.serial_cg = runtime.ensure_init().backend == "cpu"
         self.disp = ti.Vector.field(3, real, shape=shape)  # the position correction's −∇ψ at liquid nodes (m)
         self.uf = ti.Vector.field(3, real, shape=shape)  # face I + ½e_d's velocity after the solve (m/s)
         self.uf0 = ti.Vector.field(3, real, shape=shape)  # and before gravity and the solve (AFLIP's v⁰)
@@ -525,7 +533,8 @@ class LiquidProjection:
                 p, R = state.tool_p_real[k, 0], state.tool_R_real[k, 0]
                 lin, ang = state.tool_v_real[k, 0], state.tool_w_real[k, 0]
                 sd = ti.cast(model.tools[k].sdf_local(R.transpose() @ (xn - p)), ti.f64)
-                share += self._tool_stencil[k](xn, R, p)
+                if self.solver.grid_vol[I] > 0.0:  # read by classify only where particles are (fill, packing)
+                    share += self._tool_stencil[k](xn, R, p)
                 if sd < phi:
                     phi = sd
                     v = ti.cast(lin + ang.cross(xn - p), ti.f64)
@@ -869,6 +878,11 @@ class LiquidProjection:
 
     @ti.func
     def _A(self, x: ti.template(), I):
+        return self._A_with(x, I, self.bx_f[None], self.bx_t[None])
+
+    @ti.func
+    def _A_with(self, x: ti.template(), I, bxf, bxt):
+        """(A x)_I, with Σ_J x_J b_J = (bxf, bxt) (the body's force and torque parts; _bx_of)."""
         dx = self.model.dx
         out = self.diag[I] * x[I]
         for d in ti.static(range(3)):
@@ -878,8 +892,7 @@ class LiquidProjection:
                 if w != 0.0:
                     out -= w * x[I + sgn * ti.Vector.unit(3, d, ti.i32)] / (dx * dx)
         if ti.static(self.has_body):  # Δx b_I · M⁻¹ Σ_J x_J b_J (bx set by _bx_of beforehand)
-            out += dx * (self.bf[I].dot(self.bx_f[None]) * self.minv_m[None]
-                         + self.bt[I].dot(self.minv_I[None] @ self.bx_t[None]))
+            out += dx * (self.bf[I].dot(bxf) * self.minv_m[None] + self.bt[I].dot(self.minv_I[None] @ bxt))
         if ti.static(self.has_soft):
             out += self._soft_A(I)
         return out
@@ -895,6 +908,23 @@ class LiquidProjection:
                 I = self.unk[n]
                 self.bx_f[None] += x[I] * self.bf[I]
                 self.bx_t[None] += x[I] * self.bt[I]
+
+    @ti.func
+    def _bx_of_serial(self, x: ti.template()):
+        """_bx_of inside a serial loop, returning the sums (bx_f, bx_t) as local vectors for _A_with. Written into
+        the fields and read back by _A inside _solve_serial's loop, they came out wrong at Taichi 1.7.4's
+        opt_level 0 (the test suite's fast compilation): the CG took 400 iterations where the parallel path took 16
+        (tests/test_projection.py)."""
+        if ti.static(self.has_soft):
+            self._soft_of(x)
+        bxf = ti.Vector.zero(ti.f64, 3)
+        bxt = ti.Vector.zero(ti.f64, 3)
+        if ti.static(self.has_body):
+            for n in range(self.n_unk[None]):
+                I = self.unk[n]
+                bxf += x[I] * self.bf[I]
+                bxt += x[I] * self.bt[I]
+        return bxf, bxt
 
     @ti.kernel
     def body_impulse(self, state: ti.template()):
@@ -913,8 +943,12 @@ class LiquidProjection:
                     self.solver.grid_v[K] = grid.boundary(self.model, xn, ti.cast(v, self.model.real), state, 0)
 
     @ti.kernel
-    def _start(self) -> ti.f64:
-        rr = ti.f64(0.0)
+    def _start(self):
+        self._start_f()
+
+    @ti.func
+    def _start_f(self):
+        """r = b − A p from the warm start p (0 off the unknowns), and the first z = r/diag."""
         self._bx_of(self.p)
         for I in ti.grouped(self.kind):
             self.r[I] = 0.0
@@ -927,10 +961,8 @@ class LiquidProjection:
             if self._unknown(I):
                 self.z[I] = self.r[I] / self.pdiag[I]
                 self.d[I] = self.z[I]
-                rr += self.r[I] * self.z[I]
             else:
                 self.d[I] = 0.0
-        return rr
 
     @ti.kernel
     def _norm(self, f: ti.template()) -> ti.f64:
@@ -963,7 +995,7 @@ class LiquidProjection:
             self.p[I] += alpha * self.d[I]
             self.r[I] -= alpha * self.Ad[I]
             rr += self.r[I] * self.r[I]
-        self._sweeps()
+        self._sweeps(True)
         rz = ti.f64(0.0)
         for n in range(self.n_unk[None]):
             I = self.unk[n]
@@ -1013,10 +1045,12 @@ class LiquidProjection:
                 self.mic[I] = 1.0 / ti.sqrt(e)
 
     @ti.func
-    def _sweeps(self):
+    def _sweeps(self, top: ti.template()):
         """z = M⁻¹ r by the two sweeps of the MIC(0) factor (serial, in the unknowns' lexicographic order). A
-        neighbour that is no unknown counts for nothing: mic is 0 there (mic0), and z is 0 there (_start)."""
-        ti.loop_config(serialize=True)
+        neighbour that is no unknown counts for nothing: mic is 0 there (mic0), and z is 0 there (_start). `top`:
+        called at a kernel's top level (its loops serialised there; nested, they are serial anyway)."""
+        if ti.static(top):
+            ti.loop_config(serialize=True)
         for n in range(self.n_unk[None]):
             I = self.unk[n]
             t = self.r[I]
@@ -1025,7 +1059,8 @@ class LiquidProjection:
                 if Im[d] >= 0:
                     t -= self._aplus(Im, d) * self.mic[Im] * self.mic_q[Im]
             self.mic_q[I] = t * self.mic[I]
-        ti.loop_config(serialize=True)
+        if ti.static(top):
+            ti.loop_config(serialize=True)
         for n_ in range(self.n_unk[None]):
             I = self.unk[self.n_unk[None] - 1 - n_]
             t = self.mic_q[I]
@@ -1036,9 +1071,72 @@ class LiquidProjection:
             self.z[I] = t * self.mic[I]
 
     @ti.kernel
+    def _solve_serial(self, tol: ti.f64):
+        """The whole solve in one launch (the CPU's path, serial_cg): _start, z = M⁻¹ r, |b|², then the CG as one
+        serial loop: d = z + β d, A d, α = r·z/(d·A d), p += α d, r −= α A d until |r| ≤ tol |b| or d·A d ≤ 0
+        (breakdown) or MAX_IT iterations (into cg_its), then z = M⁻¹ r and β for the next; b = 0 gives p = 0. The
+        same arithmetic as _iterate's, in one thread: the tasks' solves have a few hundred to a few thousand
+        unknowns, and each launch and each parallel loop in one costs the CPU 40-100 µs to dispatch (GatheringEasy
+        small: 808 unknowns; 0.37-0.48 ms an iteration by _iterate, 0.065 ms here)."""
+        self._start_f()
+        self._precond_f()
+        bn2 = ti.f64(0.0)
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            bn2 += self.b[I] * self.b[I]
+        self.cg_bn2[None] = bn2
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            tol2 = tol * tol * self.cg_bn2[None]
+            rz = self.cg_rz[None]
+            beta = ti.f64(0.0)
+            its = 0
+            done = 0
+            if self.cg_bn2[None] <= 0.0:
+                done = 1
+                for n in range(self.n_unk[None]):
+                    self.p[self.unk[n]] = 0.0
+            while its < MAX_IT and done == 0:
+                its += 1
+                for n in range(self.n_unk[None]):
+                    I = self.unk[n]
+                    self.d[I] = self.z[I] + beta * self.d[I]
+                bxf, bxt = self._bx_of_serial(self.d)
+                pAp = ti.f64(0.0)
+                for n in range(self.n_unk[None]):
+                    I = self.unk[n]
+                    self.Ad[I] = self._A_with(self.d, I, bxf, bxt)
+                    pAp += self.d[I] * self.Ad[I]
+                if pAp <= 0.0:
+                    done = 1
+                else:
+                    alpha = rz / pAp
+                    rr = ti.f64(0.0)
+                    for n in range(self.n_unk[None]):
+                        I = self.unk[n]
+                        self.p[I] += alpha * self.d[I]
+                        self.r[I] -= alpha * self.Ad[I]
+                        rr += self.r[I] * self.r[I]
+                    if rr <= tol2:
+                        done = 1
+                    else:
+                        self._sweeps(False)
+                        rz_new = ti.f64(0.0)
+                        for n in range(self.n_unk[None]):
+                            I = self.unk[n]
+                            rz_new += self.r[I] * self.z[I]
+                        beta = rz_new / rz
+                        rz = rz_new
+            self.cg_its[None] = its
+
+    @ti.kernel
     def _precond(self):
+        self._precond_f()
+
+    @ti.func
+    def _precond_f(self):
         """z = M⁻¹ r (_sweeps), r·z into cg_rz and β = 0: the CG's first direction is z."""
-        self._sweeps()
+        self._sweeps(True)
         rz = ti.f64(0.0)
         for n in range(self.n_unk[None]):
             I = self.unk[n]
@@ -1054,6 +1152,10 @@ class LiquidProjection:
     def solve(self, iterations: list, tol: float = TOL):
         """Preconditioned CG on (A_a + Δx B M⁻¹ Bᵀ) p = b from the p held (warm start) to the relative residual
         `tol`; appends its iterations. b = 0 gives p = 0 (not the warm start)."""
+        if self.serial_cg:
+            self._solve_serial(tol)
+            iterations.append(int(self.cg_its[None]))
+            return
         self._start()
         self._precond()
         bn = np.sqrt(self._norm(self.b))

@@ -1,0 +1,103 @@
+"""What the Gathering tasks' optimised trajectories gain, split into the objects' horizontal and vertical distance to
+their goals, on the default liquid and on the projection (issue 19: the tasks' physics).
+
+    python bench/gathering_loss_split.py [--tasks GatheringEasy GatheringHard] [--size small]
+        [--out bench/results/gathering_loss_split_small.txt]
+
+The Gathering loss is the mean over the horizon of Σ_objects mean_p |x_p − g|² (m²), with the goals g at the objects'
+floating height (fluidlab_core/tasks/gathering.py). It splits exactly into a horizontal part, (x, y), which is what
+gathering means, and a vertical part, z, which is zero for an object floating at its Archimedes depth and grows as
+it sinks. On the default liquid the foam sinks (0.91 of its volume under the surface in its first second; README,
+floating bodies), on the projection it floats. For each task, liquid and trajectory, one rollout, and the two parts:
+- still: the paddle held still;
+- dp (state): the shipped trajectory, trajectories/<task>/<task>_dp_seed0_<size>.json, optimised by DP on the default;
+- cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default (bench/results/benchmark_<size>/);
+- cma-es (projection): its CMA-ES seed 0 on the projection (bench/results/benchmark_<size>_projection/, from
+  `python -m fluidlab_core.benchmark --pressure projection --methods cma-es`).
+A trajectory whose file is missing is skipped. Appends its table to the output file.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def trajectories(task: str, size: str) -> dict:
+    """{label: path} of the trajectories compared (those whose file exists)."""
+    paths = {
+        "dp (state)": ROOT / "trajectories" / task / f"{task}_dp_seed0_{size}.json",
+        "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}" / "trajectories" / task
+        / f"{task}_cma-es_seed0_{size}.json",
+        "cma-es (projection)": ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories" / task
+        / f"{task}_cma-es_seed0_{size}_projection.json",
+    }
+    return {k: p for k, p in paths.items() if p.is_file()}
+
+
+def split(task, sim, actions, position) -> dict:
+    """One rollout: the loss's horizontal and vertical parts (m², each a mean over the horizon), their sum, and the
+    task's own loss of the same actions (a check of the split)."""
+    goals = task.goals()
+    twists = task.twists(actions)
+    task.reset(sim, position)
+    horizontal, vertical = [], []
+    for twist in twists:
+        sim.step(action=twist)
+        h = v = 0.0
+        for body, g in goals.items():
+            d = sim.positions(body) - g
+            h += float(np.mean(d[:, 0] ** 2 + d[:, 1] ** 2))
+            v += float(np.mean(d[:, 2] ** 2))
+        horizontal.append(h)
+        vertical.append(v)
+    out = {"horizontal": float(np.mean(horizontal)), "vertical": float(np.mean(vertical))}
+    out["sum"] = out["horizontal"] + out["vertical"]
+    out["loss"] = float(task.evaluate(actions, position, sim=sim, rewards=False)["loss"])
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tasks", nargs="+", default=["GatheringEasy", "GatheringHard"])
+    ap.add_argument("--size", default="small")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    import fluidlab_core as fl
+    from fluidlab_core import tasks
+    from fluidlab_core.trajectory import Trajectory
+
+    fl.init("cpu")
+    out = Path(args.out or ROOT / "bench" / "results" / f"gathering_loss_split_{args.size}.txt")
+    lines = [f"# bench/gathering_loss_split.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32",
+             "# task | liquid | trajectory | loss (m²) = horizontal + vertical | its gain on the still tool's loss: "
+             "total, horizontal, vertical (share of the still loss) | task.evaluate's loss (check)"]
+    print("\n".join(lines), flush=True)
+    for name in args.tasks:
+        for pressure in ("state", "projection"):
+            task = tasks.make(name, args.size, pressure=pressure)
+            sim = task.simulator()
+            still = split(task, sim, np.zeros((task.horizon, task.n_actions)), None)
+            rows = [("still", still)]
+            for label, path in trajectories(name, args.size).items():
+                actions, position = task.actions_from_trajectory(Trajectory.load(path))
+                rows.append((label, split(task, sim, actions, position)))
+            for label, r in rows:
+                gain = [(still[k] - r[k]) / still["sum"] for k in ("sum", "horizontal", "vertical")]
+                line = (f"{name} | {pressure} | {label} | {r['sum']:.4e} = {r['horizontal']:.4e} + {r['vertical']:.4e} | "
+                        f"{gain[0]:+.3f}, {gain[1]:+.3f}, {gain[2]:+.3f} | {r['loss']:.4e}")
+                lines.append(line)
+                print(line, flush=True)
+            fl.runtime.reset()  # the next build starts its fields' ids from zero (its kernels from the cache)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as f:
+        f.write("\n".join(lines) + "\n\n")
+    print(f"appended to {out}")
+
+
+if __name__ == "__main__":
+    main()
