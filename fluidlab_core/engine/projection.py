@@ -974,8 +974,7 @@ class LiquidProjection:
 
     @ti.kernel
     def _iterate(self) -> ti.types.vector(2, ti.f64):
-        """One CG iteration in one launch (each launch costs the host 50-80 µs on the CPU, as much as the iteration's
-        arithmetic at the tasks' sizes): d = z + β d, A d, α = r·z/(d·A d), p += α d, r −= α A d, z = M⁻¹ r, and β
+        """One CG iteration in one launch, its loops parallel (a GPU's path; the CPU's is _solve_serial): d = z + β d, A d, α = r·z/(d·A d), p += α d, r −= α A d, z = M⁻¹ r, and β
         for the next. Returns (r·r, d·A d); with d·A d ≤ 0 (breakdown) α is 0 and p stays. Loops over the unknowns
         only (d, z are 0 elsewhere, from _start)."""
         beta = self.cg_beta[None]
