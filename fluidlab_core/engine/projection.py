@@ -988,12 +988,7 @@ class LiquidProjection:
             self.Ad[I] = self._A(self.d, I)
             pAp += self.d[I] * self.Ad[I]
         alpha = ti.select(pAp > 0.0, self.cg_rz[None] / ti.max(pAp, 1e-300), 0.0)
-        rr = ti.f64(0.0)
-        for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            self.p[I] += alpha * self.d[I]
-            self.r[I] -= alpha * self.Ad[I]
-            rr += self.r[I] * self.r[I]
+        rr = self._advance(alpha)
         self._sweeps(True)
         rz = ti.f64(0.0)
         for n in range(self.n_unk[None]):
@@ -1002,6 +997,17 @@ class LiquidProjection:
         self.cg_beta[None] = ti.select(self.cg_rz[None] > 0.0, rz / ti.max(self.cg_rz[None], 1e-300), 0.0)
         self.cg_rz[None] = rz
         return ti.Vector([rr, pAp])
+
+    @ti.func
+    def _advance(self, alpha):
+        """p += α d, r −= α A d over the unknowns; returns r·r (both CG paths)."""
+        rr = ti.f64(0.0)
+        for n in range(self.n_unk[None]):
+            I = self.unk[n]
+            self.p[I] += alpha * self.d[I]
+            self.r[I] -= alpha * self.Ad[I]
+            rr += self.r[I] * self.r[I]
+        return rr
 
     @ti.func
     def _aplus(self, I, d: ti.template()):
@@ -1109,13 +1115,7 @@ class LiquidProjection:
                 if pAp <= 0.0:
                     done = 1
                 else:
-                    alpha = rz / pAp
-                    rr = ti.f64(0.0)
-                    for n in range(self.n_unk[None]):
-                        I = self.unk[n]
-                        self.p[I] += alpha * self.d[I]
-                        self.r[I] -= alpha * self.Ad[I]
-                        rr += self.r[I] * self.r[I]
+                    rr = self._advance(rz / pAp)
                     if rr <= tol2:
                         done = 1
                     else:
