@@ -655,8 +655,6 @@ class Scene:
             why.append("gradients (it has a forward solver only; build with requires_grad=False)")
         if self.jbar:
             why.append("jbar (the projection holds the liquid's volume itself)")
-        if self.emitters:
-            why.append("emitters")
         if self.gas is not None:
             why.append("gas")
         from fluidlab_core.engine import constitutive

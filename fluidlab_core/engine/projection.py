@@ -24,6 +24,10 @@ Per substep (FastSolver.projected_substep):
     position      particles of a packed liquid move down the gradient of a second potential (below)
     rigid         the body's projection to one rigid motion, with the walls' contact (rigid.py), then its push Δq
 
+Emitters. A pool particle adds nothing to the grid until its emitter has emitted it (emitters.py); the particles
+born in a substep leave their nozzles in G2P, after the solve, as in the default solver, and the position
+correction moves only emitted ones. A jet into water adds its volume to the layer (tests/test_projection.py).
+
 Density. The liquids may differ in density: ρ_I at node I is the liquids' mass there over their particles'
 volume (ρ of the densest liquid where none has volume), and a face between unknowns I and J has 1/ρ = 2/(ρ_I + ρ_J)
 (below written ρ), so that the pressure rises by each layer's own ρ g (tests/test_projection.py: brine under water).
@@ -1358,7 +1362,10 @@ class LiquidProjection:
         places: their F holds their shape."""
         a = ti.cast(POSITION_CORRECTION, self.model.real)
         for p in range(self.model.n_particles):
-            if transfer.is_fluid(self.model, p):
+            active = True  # an emitter's pool particle still parked stays where it is (emitters.py)
+            if ti.static(self.model.has_emitters):
+                active = self.model.emitters.active(state, 0, p)
+            if active and transfer.is_fluid(self.model, p):
                 xg = state.x[0, p]
                 if ti.static(self.has_body):
                     xg = self.solver.rigid.x_g[p]

@@ -495,15 +495,26 @@ class FastSolver(Solver):
         """G2P of a substep with the liquid projection, after the projection."""
         self._g2p_loop(state, 0, 0, False, 0, False)
 
-    def projected_substep(self, state: StateBuffer, twist=None):
+    @ti.kernel
+    def projection_g2p_kernel_emitting(self, state: ti.template(), emit: ti.types.ndarray()):
+        """The same in a scene with emitters, the substep's emission (n_emitters, 3) from the host: the pool
+        particles born in the substep leave their nozzles after the projection, as in substep_kernel_emitting."""
+        self._g2p_loop(state, 0, 0, False, emit, True)
+
+    def projected_substep(self, state: StateBuffer, twist=None, emit=None):
         """One substep with the liquid's pressure by projection (projection.py's module docstring has the order),
-        with the tools' twists (n_tools, 6) where the scene has tools."""
+        with the tools' twists (n_tools, 6) where the scene has tools and the substep's emission (n_emitters, 3:
+        emitted before, emitted after, on-time after; emitters.schedule) where it has emitters. P2G and the
+        projection see the particles emitted before the substep (the pool's others add nothing to the grid)."""
         if self.model.n_tools:
             self.projection_p2g_kernel_tools(state, twist)
         else:
             self.projection_p2g_kernel(state)
         self.proj.project(state)
-        self.projection_g2p_kernel(state)
+        if emit is not None:
+            self.projection_g2p_kernel_emitting(state, emit)
+        else:
+            self.projection_g2p_kernel(state)
         self.proj.displace(state)
         if self.rigid is not None:
             self.rigid.forward(state, 0)
@@ -535,11 +546,13 @@ class FastSolver(Solver):
             counts, times, _ = schedule(model.emitter_specs, *state.emission, on, model.substeps, model.dt)
             twist = control.twists if model.n_tools else np.zeros((1, 6))
         for i in range(model.substeps):
-            if self.proj is not None:
-                self.projected_substep(state, control.twists if model.n_tools else None)
-                continue
+            emit = None
             if model.has_emitters:
                 emit = np.stack([counts[i], counts[i + 1], times[i + 1]], axis=1).astype(np.float64)
+            if self.proj is not None:
+                self.projected_substep(state, control.twists if model.n_tools else None, emit)
+                continue
+            if model.has_emitters:
                 self.substep_kernel_emitting(state, twist, emit)
             elif model.n_tools:
                 self.substep_kernel(state, control.twists)
