@@ -72,3 +72,21 @@ def test_mesh_static_and_mesh_body(tmp_path):
     assert mass == pytest.approx(clay.density * ball.volume, rel=0.08)
     assert abs(z.min() - 0.03) < scene.dx  # resting on the top face, not sunk into it
     assert np.abs(sim.velocities(body)).max() < 0.1
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.5, 0.9])
+def test_water_at_rest_in_a_static_tank_keeps_its_depth(offset):
+    """The tasks' water (c = 4 m/s) 25 mm deep at rest in a static tank (walls two cells thick) on the tasks' small
+    tank's cells (8 mm) keeps its depth, whether the floor's surface lies on a node row (offset 0, as the tasks' tank
+    at the small size) or between two (0.5, 0.9 cells above one): twice its particles' mean height above the floor
+    is within 0.15 cells of 25 mm after 1 s, none piled on the floor. Measured: 24.69, 24.14, 24.73 mm (its
+    hydrostatic compression, ρgh/(2K) = 0.77 % on average, is 0.2 mm; held by the domain's own walls 24.71 mm at 5 mm
+    cells). Before 2026-12-05 (only nodes inside a static held): 20.82, 17.69, 13.95 mm, with 3 %, 10 % and 26 % of
+    the particles piled on the floor (engine/statics.py: ON_SURFACE, MEDIAL_GRADIENT, SECOND_SURFACE;
+    bench/static_floor.py)."""
+    from fluidlab_core.apps import validation
+
+    r = validation.static_tank(offset=offset, res=20, size=0.16, times=(1.0,))
+    report("static tank", offset=offset, depth_mm=1e3 * r["depth"][0], on_floor=r["on_floor"][0], J=r["J"][0])
+    assert abs(r["depth"][0] - 0.025) < 0.15 * r["dx"]
+    assert r["on_floor"][0] == 0.0

@@ -24,6 +24,10 @@ frame, z up, g = 9.81 m/s².
   spin.
 - `magnus_held`: the same disc (or a ball) held at U and ω as a hand would hold it: the water's force on it over
   each step, its lift along ω × U against Kutta–Joukowski.
+- `static_tank`: a liquid at rest in a tank that is a static (its floor and walls an SDF, as in the tasks), its
+  floor's surface `offset` cells above a node row (0: on one), beside the same liquid held by the domain's own
+  walls. The depth it fills is V/A whatever the boundary (minus its hydrostatic compression, ρgh/(2K) on average);
+  reported over time: the depth twice the particles' mean height shows and the share of particles on the floor.
 - `sound_ring`: a water column of depth H released at rest without its hydrostatic pressure (J = 1) rings
   with a quarter wave, period 4H/c (c = √(λ/ρ)); a bulk viscosity ζ (materials.DampedLiquid) damps it at
   ζk²/(2ρ), k = π/(2H). Reported: the mid-depth pressure over time, its period, first swing, decay rate and mean
@@ -126,6 +130,43 @@ def water_column(res: int = 16, width: float = 0.16, height: float = 0.12, steps
                 surface_spread=float(z_end[top].std()),
                 slope=float(slope), slope_ratio=float(slope / rho_g), intercept=float(intercept),
                 r2=float(1 - (residual ** 2).sum() / ((p_bin - p_bin.mean()) ** 2).sum()), rho_g=rho_g)
+
+
+def static_tank(offset: float = 0.0, res: int = 20, size: float = 0.1, depth: float = 0.025, wall_cells: int = 2,
+                times=(0.1, 1.0), liquid=None, walls: bool = False) -> dict:
+    """`liquid` (the tasks' water by default) `depth` deep at rest in a square tank `size` wide, a static
+    (shapes.Tank, walls `wall_cells` thick), its floor's surface `offset` cells above a node row, on a grid of `res`
+    cells across `size`; or (walls=True) the same water held by the domain's walls alone (the domain the tank's
+    inside). Reported at each of `times` (s): the depth 2 (mean z − floor) (m), the share of particles within
+    0.05 cells of the floor, and the particles' mean J."""
+    import fluidlab_core as fl
+    from fluidlab_core import shapes as S
+    from fluidlab_core.tasks import common
+
+    liquid = liquid or common.WATER
+    dx = size / res
+    wall = wall_cells * dx
+    if walls:
+        inner = size - 2 * wall
+        scene = fl.Scene(lower=(0, 0, 0), upper=(inner, inner, size), grid_res=res, dt=5e-3, substeps=1)
+        floor, lo, hi = 0.0, 0.0, inner
+    else:
+        scene = fl.Scene(lower=(0, 0, 0), upper=(size, size, size), grid_res=res, dt=5e-3, substeps=1)
+        scene.add_static(S.Tank((0, 0, offset * dx), (size, size, size), wall), friction=0.2, name="tank")
+        floor, lo, hi = wall + offset * dx, wall, size - wall
+    scene.add_particles(S.Box((lo, lo, floor), (hi, hi, floor + depth)), liquid, name="liquid")
+    _substeps(scene, None)
+    sim = scene.build()
+    out = dict(dx=scene.dx, floor=floor, depth0=depth, substeps=scene.substeps, times=[], depth=[], on_floor=[], J=[])
+    for t in times:
+        while sim.time < t - 1e-9:
+            sim.step()
+        z = sim.positions("liquid")[:, 2]
+        out["times"].append(sim.time)
+        out["depth"].append(float(2.0 * (z.mean() - floor)))
+        out["on_floor"].append(float((z < floor + 0.05 * scene.dx).mean()))
+        out["J"].append(float(np.linalg.det(sim.deformation_gradients("liquid")).mean()))
+    return out
 
 
 def _layer_shape(width, thick, z0, z1, mid, amp, above):
