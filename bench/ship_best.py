@@ -28,11 +28,16 @@ def main():
     from fluidlab_core.trajectory_store import report_path
 
     runs = [json.loads(line) for line in open(Path(args.bench_out) / "runs.jsonl")]
+
+    def kept(r):  # a run whose trajectory file is still there (older sweeps kept only some)
+        src = Path(r["trajectory"])
+        return (src if src.is_absolute() else Path(args.bench_out) / src).is_file()
+
     best = {}
     for r in runs:
         if args.tasks and r["task"] not in args.tasks:
             continue
-        if "final_loss" in r and "trajectory" in r and (r["task"] not in best
+        if "final_loss" in r and "trajectory" in r and kept(r) and (r["task"] not in best
                                                          or r["final_loss"] < best[r["task"]]["final_loss"]):
             best[r["task"]] = r
     fluidlab_core.init(arch=args.arch, precision="f32")
