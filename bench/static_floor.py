@@ -28,12 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def task_row(name: str, seconds) -> str:
     import fluidlab_core as fl
     from fluidlab_core import tasks
+
     task = tasks.make(name, "small")
     sim = task.simulator()
     task.reset(sim)
+    dx = task.scene().dx
     body = task.observed_bodies[0]  # the tank's water, the cup's coffee
     x = sim.positions(body)
-    floor = x[:, 2].min() - 0.25 * task.scene().dx  # the lowest particle row sits a quarter cell above the floor
+    floor = x[:, 2].min() - 0.25 * dx  # the lowest particle row sits a quarter cell above the floor
     z0 = x[:, 2].mean()
     cells = []
     for t in seconds:
@@ -41,7 +43,7 @@ def task_row(name: str, seconds) -> str:
             sim.step(action=np.zeros(6))
         z = sim.positions(body)[:, 2]
         J = np.linalg.det(sim.deformation_gradients(body)).mean()
-        cells.append(f"{1e3 * (z.mean() - z0):+.2f} mm, {(z < floor + 0.05 * task.scene().dx).mean():.3f}, "
+        cells.append(f"{1e3 * (z.mean() - z0):+.2f} mm, {(z < floor + 0.05 * dx).mean():.3f}, "
                      f"{J:.4f}")
     fl.runtime.reset()
     return f"{name} ({body}'s mean height from its start) | " + " | ".join(cells)
