@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from results_file import append_table  # bench/results_file.py (this script's folder is on the path)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -93,10 +95,7 @@ def main(argv=None):
                 lines.append(line)
                 print(line, flush=True)
             fl.runtime.reset()  # the next build starts its fields' ids from zero (its kernels from the cache)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as f:
-        f.write("\n".join(lines) + "\n\n")
-    print(f"appended to {out}")
+    append_table(out, lines)
 
 
 if __name__ == "__main__":

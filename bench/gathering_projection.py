@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from results_file import append_table  # bench/results_file.py (this script's folder is on the path)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -168,10 +170,7 @@ def main(argv=None):
                     f"{r['loss']:.3e}, {r['return']:.2f} | {r['step_s']:.3f}")
             print(line, flush=True)
             lines.append(line)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as f:
-        f.write("\n".join(lines) + "\n\n")
-    print(f"appended to {out}")
+    append_table(out, lines)
 
 
 if __name__ == "__main__":

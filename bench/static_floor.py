@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from results_file import append_table  # bench/results_file.py (this script's folder is on the path)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -76,11 +78,7 @@ def main(argv=None):
     for name in args.tasks:
         lines.append(task_row(name, args.seconds))
         print(lines[-1], flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as f:
-        f.write("\n".join(lines) + "\n\n")
-    print(f"appended to {out}")
+    append_table(args.out, lines)
 
 
 if __name__ == "__main__":
