@@ -32,6 +32,7 @@ import taichi as ti
 
 from fluidlab_core.engine import grid, transfer
 from fluidlab_core.engine import svd as svd3
+from fluidlab_core.engine.emitters import takes_part
 from fluidlab_core.engine.solver import Solver
 from fluidlab_core.engine.state import StateBuffer
 from fluidlab_core.runtime import compiled_fast
@@ -235,10 +236,7 @@ class DiffSolver(Solver):
     @ti.func
     def _active(self, s, p):
         """Whether particle p takes part in substep s (always, without emitters)."""
-        out = True
-        if ti.static(self.model.has_emitters):
-            out = self.model.emitters.active(self.state, s, p)
-        return out
+        return takes_part(self.model, self.state, s, p)
 
     # --- P2G, grid update, G2P: backward ------------------------------------------------------------
     @ti.kernel

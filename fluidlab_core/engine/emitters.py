@@ -328,3 +328,13 @@ def exhausted(specs, emitted, on_time) -> np.ndarray:
     """(E,) bools: the pool is used up and rows were due that it could not emit."""
     return np.array([n >= s.pool and np.floor(t / s.row_period + 0.5) > s.max_rows
                      for s, n, t in zip(specs, emitted, on_time)], dtype=bool)
+
+
+@ti.func
+def takes_part(model: ti.template(), state: ti.template(), s, p):
+    """Whether particle p takes part in slot s: always without emitters; with them, an emitter's pool particle
+    only once emitted (a parked one keeps its slot's copy and is neither scattered, gathered nor moved)."""
+    out = True
+    if ti.static(model.has_emitters):
+        out = model.emitters.active(state, s, p)
+    return out

@@ -101,6 +101,7 @@ import taichi as ti
 
 from fluidlab_core import runtime
 from fluidlab_core.engine import grid, transfer
+from fluidlab_core.engine.emitters import takes_part
 
 AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
 SOFT = 9  # a node of a deformable solid without liquid (no unknown; its faces to the liquid are closed)
@@ -1362,10 +1363,8 @@ class LiquidProjection:
         places: their F holds their shape."""
         a = ti.cast(POSITION_CORRECTION, self.model.real)
         for p in range(self.model.n_particles):
-            active = True  # an emitter's pool particle still parked stays where it is (emitters.py)
-            if ti.static(self.model.has_emitters):
-                active = self.model.emitters.active(state, 0, p)
-            if active and transfer.is_fluid(self.model, p):
+            # an emitter's pool particle still parked stays where it is (emitters.py)
+            if takes_part(self.model, state, 0, p) and transfer.is_fluid(self.model, p):
                 xg = state.x[0, p]
                 if ti.static(self.has_body):
                     xg = self.solver.rigid.x_g[p]

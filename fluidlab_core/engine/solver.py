@@ -33,7 +33,7 @@ import taichi as ti
 from fluidlab_core.engine import grid, transfer
 from fluidlab_core.engine.rigid import RigidProjection
 from fluidlab_core.engine.control import Control
-from fluidlab_core.engine.emitters import schedule
+from fluidlab_core.engine.emitters import schedule, takes_part
 from fluidlab_core.engine.state import StateBuffer
 from fluidlab_core.engine.tools import advance_pose
 from fluidlab_core.runtime import compiled_fast
@@ -124,10 +124,7 @@ class Solver:
                 self.grid_A[I] = ti.Matrix.zero(float, 4, 4)
                 self.grid_r[I] = ti.Vector.zero(float, 4)
             for p in range(self.n_particles):
-                active = True
-                if ti.static(self.model.has_emitters):
-                    active = self.model.emitters.active(state, s_in, p)
-                if active and transfer.is_fluid(self.model, p):
+                if takes_part(self.model, state, s_in, p) and transfer.is_fluid(self.model, p):
                     base, fx, w = grid.stencil(self.model, state.x[s_in, p])
                     mp = self.model.mass[p]
                     J = state.F[s_in, p].determinant()
@@ -354,9 +351,7 @@ class Solver:
     @ti.func
     def _scatter_J(self, state: ti.template(), s_in, c, p):
         """J-bar's scatter of a liquid particle's m J and m (an emitter's parked particles take no part)."""
-        active = True
-        if ti.static(self.model.has_emitters):
-            active = self.model.emitters.active(state, s_in, p)
+        active = takes_part(self.model, state, s_in, p)
         if active and transfer.is_fluid(self.model, p):
             mp = self.model.mass[p]
             J = state.F[s_in, p].determinant()
@@ -371,9 +366,7 @@ class Solver:
     def _p2g(self, state: ti.template(), s_in, s_out, keep: ti.template(), c, p):
         """P2G of particle p: strain update, constitutive model (its SVD inline), scatter into grid copy c (or
         atomically into the grid)."""
-        active = True
-        if ti.static(self.model.has_emitters):
-            active = self.model.emitters.active(state, s_in, p)
+        active = takes_part(self.model, state, s_in, p)
         Cp = state.C[s_in, p]
         F_in = state.F[s_in, p]
         if ti.static(self.has_jbar):
