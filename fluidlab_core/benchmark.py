@@ -99,14 +99,6 @@ def _record(spec: dict, task=None, **fields) -> dict:
 PARTIAL_FORMAT = "fluidlab-benchmark-partial"
 
 
-def _make(name: str, size: str, pressure: str = "state"):
-    """tasks.make, naming the pressure only where it is not the default (as tasks.make builds the task: a stand-in
-    for it, or an older one, need not know the option)."""
-    from fluidlab_core import tasks
-
-    return tasks.make(name, size=size) if pressure == "state" else tasks.make(name, size=size, pressure=pressure)
-
-
 def run_name(spec: dict) -> str:
     """A run's file name: TASK_METHOD_seedS_SIZE, with _projection on the projected liquid."""
     name = f"{spec['task']}_{spec['method']}_seed{spec['seed']}_{spec['size']}"
@@ -166,7 +158,7 @@ def run_job(spec: dict) -> dict:
         from fluidlab_core.trajectory_store import TrajectoryStore, report_path
 
         fluidlab_core.init(arch=spec["arch"], precision="f32", cpu_threads=spec.get("threads"))
-        task = _make(spec["task"], spec["size"], spec.get("pressure", "state"))
+        task = tasks.make(spec["task"], size=spec["size"], pressure=spec.get("pressure", "state"))
         budget = int(spec["budget"])
         if spec["method"] == STILL:  # the reference row: the tool kept still, one rollout
             t0 = time.perf_counter()
@@ -627,7 +619,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     runs_path = out / "runs.jsonl"
     specs, refused = [], []
     for name in tasks_:
-        task = _make(name, size, pressure)  # refuses an unknown task, size or pressure by name
+        task = tasks.make(name, size=size, pressure=pressure)  # refuses an unknown task, size or pressure by name
         budget = int(rollouts) * task.horizon
         if baseline:
             specs.append({"task": name, "method": STILL, "seed": 0, "size": size, "budget": budget, "arch": arch,
@@ -759,7 +751,7 @@ def reevaluate(out: Path, tasks_=None, arch: str = "cpu", threads: int | None = 
         t0 = time.perf_counter()
         which = (r["task"], r["size"], r.get("pressure", "state"))
         if which not in built:
-            built[which] = _make(r["task"], r["size"], which[2])
+            built[which] = tasks.make(r["task"], size=r["size"], pressure=which[2])
         task = built[which]
         if r["method"] == STILL:
             result = task.evaluate(np.zeros((task.horizon, task.n_actions)))

@@ -136,7 +136,7 @@ def test_an_interrupted_benchmark_run_resumes_from_its_snapshot(gathering, tmp_p
             raise Interrupted("the session ended")
         return real(task, method, budget, callback=cb, **kw)
 
-    monkeypatch.setattr(tasks, "make", lambda name, size: gathering)
+    monkeypatch.setattr(tasks, "make", lambda name, size, **options: gathering)
     monkeypatch.setattr(fluidlab_core, "init", lambda **kw: None)
     spec = {"task": "GatheringEasy", "method": "dp-no-expanding", "seed": 0, "size": "small", "budget": 200,
             "arch": "cpu", "threads": None, "checkpoints": 2, "out": str(tmp_path), "snapshot_minutes": 0.0}
