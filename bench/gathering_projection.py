@@ -62,7 +62,7 @@ def measured_level(task, sim) -> float:
     spacing."""
     from fluidlab_core.tasks import gathering as g
 
-    s = task.scene().particle_spacing
+    s = sim.scene.particle_spacing
     x = np.concatenate([sim.positions(b) for b in ("water", *[e.name for e in sim.emitter_specs])])
     far = np.ones(len(x), bool)
     for c in [sim.positions(b).mean(axis=0) for b in objects(task)] + [sim.tool_pose(task.tool_name)[:3]]:
