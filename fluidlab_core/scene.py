@@ -668,9 +668,6 @@ class Scene:
         rigid = [b.handle.name for b in self.bodies if b.handle.material.is_rigid]
         if others and rigid:
             why.append(f"deformable solids ({', '.join(others)}) beside a rigid body")
-        if rigid and (self.statics or self.tools):  # its contact is with the domain's walls alone (rigid.py)
-            kinematic = [s.name for s in self.statics] + [t.name for t in self.tools]
-            why.append(f"a rigid body beside statics or tools ({', '.join(kinematic)})")
         if len(rigid) > 1:
             why.append(f"{len(rigid)} rigid bodies ({', '.join(rigid)}); it couples one")
         if not liquids:

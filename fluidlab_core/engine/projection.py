@@ -33,8 +33,8 @@ volume (ρ of the densest liquid where none has volume), and a face between unkn
 (below written ρ), so that the pressure rises by each layer's own ρ g (tests/test_projection.py: brine under water).
 A domain without air is pinned (p = 0 half a cell above its highest liquid node) and skips the position correction.
 
-Statics and tools (solids of prescribed velocity: 0, or the tool's rigid motion at the substep's start pose; not beside a
-rigid body). Each face f has their share σ_k (the statics' once, the tools' each substep, by the same sub-box rule as
+Statics and tools (solids of prescribed velocity: 0, or the tool's rigid motion at the substep's start pose; beside a
+rigid body too, which meets them through rigid.py's contact). Each face f has their share σ_k (the statics' once, the tools' each substep, by the same sub-box rule as
 the body's σ_f, the tools' in what the statics leave), the liquid's open share becomes a_f = 1 − σ_f − σ_k (the body's
 σ_f capped at 1 − σ_k), and the divergence gains the tools' flux Σ_t σ_t u_t·e_d:
     (D u)_I = Σ_f s w_f [a_f u_f + σ_f K_f·q + Σ_t σ_t u_t·e_d] / Δx

@@ -43,15 +43,20 @@ around the body, with the liquid's acceleration (the patch's band mode, 2026-12-
 0.47 of its volume under for 5 s without creeping at 16 cells (0.60 at 24), but a deep start stays deep and an 800 kg/m3 cube sinks through
 its depth at balanced force: what is left is the liquid's pressure around the body, which its J's history sets.
 
-Walls' contact (scenes with `Scene(pressure="projection")`, where a rigid body carries no stress and so cannot be
-held up by the floor's nodes pressing into its particles): after the body's v and ω are known, each body particle
-whose surface (h/2 beyond it, h its spacing) lies within h of a domain wall is a contact point at r = x − c, normal n into the domain, gap
-g = (x − wall)·n − h/2 (the body's surface half a spacing beyond the particle). Projected Gauss–Seidel over the points
+Contact with the walls, the statics and the tools (scenes with `Scene(pressure="projection")`, where a rigid body
+carries no stress and so cannot be held up by the nodes of a floor pressing into its particles): after the body's v
+and ω are known, each body particle whose surface (h/2 beyond it, h its spacing) lies within h of a surface is a
+contact point at r = x − c with the surface's normal n (into the domain for a wall, ∇φ/|∇φ| of a static's or tool's
+SDF φ) and the gap g = d − h/2, d the particle's distance from the surface ((x − wall)·n for a wall, φ(x) for a
+static, φ(R_tᵀ(x − p_t)) for a tool at its end-of-substep pose (p_t, R_t)). Projected Gauss–Seidel over the points
 (CONTACT_ITERS sweeps; Catto 2005, "Iterative dynamics with temporal coherence") applies normal impulses λ ≥ 0,
-accumulated per point, so that each point's normal velocity v_n = (v + ω × r)·n is at least
+accumulated per point, so that each point's normal velocity relative to the surface's, v_n = (v + ω × r − u_s)·n
+(u_s = 0 for walls and statics, the tool's lin + ang × (x − p_t)), is at least
     −g/Δt (g ≥ 0: close the gap this substep, no further)   or   −β g/Δt (g < 0: push out at β per substep),
-with the effective mass 1/(1/M + (r × n)·I⁻¹(r × n)). Frictionless. Without it a 2000 kg/m³ cube at 16 cells rested
-0.31 Δx into the floor (docs/engine.md, "The walls' contact").
+with the effective mass 1/(1/M + (r × n)·I⁻¹(r × n)). Frictionless (a static's or tool's friction coefficient acts on
+the liquid, not here). Without it a 2000 kg/m³ cube at 16 cells rested 0.31 Δx into the floor (docs/engine.md, "The
+walls' contact"); beside statics and tools, without it, the same cube sank through a static floor and a paddle
+passed through a cube (tests/test_projection.py).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
@@ -135,12 +140,21 @@ class RigidProjection:
         self.inertia = ti.Matrix.field(3, 3, real, shape=nb, needs_grad=g)  # about c (kg m²)
         self.omega = ti.Vector.field(3, real, shape=nb, needs_grad=g)  # angular velocity (rad/s)
         self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
-        self.wall_contact = bool(getattr(model, "projection", False))  # the walls' contact (module docstring)
+        self.wall_contact = bool(getattr(model, "projection", False))  # the contact (module docstring)
         if self.wall_contact:
-            # the contact points of the body being solved: particle, wall k (0-5: −x, +x, −y, +y, −z, +z), impulse
-            self.contact_p = ti.field(ti.i32, shape=6 * n)
-            self.contact_k = ti.field(ti.i32, shape=6 * n)
-            self.contact_lambda = ti.field(real, shape=6 * n)  # accumulated normal impulse (N s)
+            from fluidlab_core.engine import statics
+
+            # the surfaces: the six walls, then the statics, then the tools
+            colliders = getattr(model, "colliders", [])
+            self.first_tool = 6 + len(colliders)  # the first tool's surface index
+            self.n_surfaces = self.first_tool + model.n_tools
+            self._static_sdfs = [c.sdf for c in colliders]
+            self._static_normals = [statics.sdf_normal(c.sdf, 0.01 * model.dx) for c in colliders]
+            # the contact points of the body being solved: particle, surface k, accumulated normal impulse (N s)
+            m = self.n_surfaces * n
+            self.contact_p = ti.field(ti.i32, shape=m)
+            self.contact_k = ti.field(ti.i32, shape=m)
+            self.contact_lambda = ti.field(real, shape=m)
             self.contact_substeps = ti.field(ti.i32, shape=())  # substeps in which some body got an impulse
 
     # --- per body and per particle ------------------------------------------------------------------
@@ -229,24 +243,41 @@ class RigidProjection:
         state.F[s_out, p] = Fp
 
     @ti.func
-    def _wall_gap(self, b, p, k, c):
-        """Point p of body b against wall k (0-5: −x, +x, −y, +y, −z, +z): its lever r, the wall's normal n into the
-        domain, and the gap g between the body's surface there (h/2 beyond the particle) and the wall."""
+    def _surface_gap(self, state: ti.template(), s, b, p, k, c):
+        """Point p of body b against surface k (0-5: the walls −x, +x, −y, +y, −z, +z; then the statics; then the
+        tools at their pose in slot s): its lever r, the surface's normal n (out of the solid), the gap g between
+        the body's surface there (h/2 beyond the particle) and the surface, h, and the surface's normal velocity."""
         r = self.R[b] @ self.rigid.rest_offset[p]
         x = c + r
         h = ti.pow(self.model.rest_volume[p], 1.0 / 3.0)
-        d = k // 2
-        side = ti.cast(1 - 2 * (k % 2), float)  # +1 for a lower wall, −1 for an upper one
-        e = ti.Vector([ti.cast(d == 0, float), ti.cast(d == 1, float), ti.cast(d == 2, float)])
-        wall = ti.select(k % 2 == 0, ti.Vector(self.model.lower).dot(e), ti.Vector(self.model.upper).dot(e))
-        g = side * (x.dot(e) - wall) - 0.5 * h
-        return r, side * e, g, h
+        n = ti.Vector.zero(float, 3)
+        g = ti.cast(0.0, float)
+        un = ti.cast(0.0, float)
+        if k < 6:
+            d = k // 2
+            side = ti.cast(1 - 2 * (k % 2), float)  # +1 for a lower wall, −1 for an upper one
+            e = ti.Vector([ti.cast(d == 0, float), ti.cast(d == 1, float), ti.cast(d == 2, float)])
+            wall = ti.select(k % 2 == 0, ti.Vector(self.model.lower).dot(e), ti.Vector(self.model.upper).dot(e))
+            g = side * (x.dot(e) - wall) - 0.5 * h
+            n = side * e
+        for j in ti.static(range(len(self._static_sdfs))):
+            if k == ti.static(6 + j):
+                g = self._static_sdfs[j](x) - 0.5 * h
+                n = self._static_normals[j](x)
+        for t in ti.static(range(self.model.n_tools)):
+            if k == ti.static(self.first_tool + t):
+                pt, Rt = state.tool_p_real[t, s], state.tool_R_real[t, s]
+                xl = Rt.transpose() @ (x - pt)
+                g = self.model.tools[t].sdf_local(xl) - 0.5 * h
+                n = Rt @ self.model.tools[t].normal_local(xl)
+                un = (state.tool_v_real[t, s] + state.tool_w_real[t, s].cross(x - pt)).dot(n)
+        return r, n, g, h, un
 
     @ti.func
-    def _wall_contact(self, b):
-        """Projected Gauss–Seidel on body b's contact with the domain's walls (module docstring); updates
-        momentum[b] and omega[b]. The points within h of a wall are gathered once, then swept CONTACT_ITERS
-        times."""
+    def _contact(self, state: ti.template(), s, b):
+        """Projected Gauss–Seidel on body b's contact with the walls, the statics and the tools (module
+        docstring); updates momentum[b] and omega[b]. The points within h of a surface are gathered once, then
+        swept CONTACT_ITERS times."""
         M = self.rigid.body_mass[b]
         c = self.com_sum[b] / M
         I_inv = self.inertia[b].inverse()
@@ -256,8 +287,8 @@ class RigidProjection:
         count = 0
         for p in range(self.model.n_particles):
             if self.rigid.body[p] == b:
-                for k in range(6):
-                    r0, n0, g0, h0 = self._wall_gap(b, p, k, c)
+                for k in range(self.n_surfaces):
+                    r0, n0, g0, h0, u0 = self._surface_gap(state, s, b, p, k, c)
                     if g0 < h0:
                         self.contact_p[count] = p
                         self.contact_k[count] = k
@@ -266,9 +297,9 @@ class RigidProjection:
         touched = 0
         for _ in range(CONTACT_ITERS):
             for i in range(count):
-                r, n, g, h = self._wall_gap(b, self.contact_p[i], self.contact_k[i], c)
+                r, n, g, h, un = self._surface_gap(state, s, b, self.contact_p[i], self.contact_k[i], c)
                 target = -g / dt if g >= 0.0 else -CONTACT_BETA * g / dt
-                vn = (v + w.cross(r)).dot(n)
+                vn = (v + w.cross(r)).dot(n) - un
                 rn = r.cross(n)
                 k_eff = 1.0 / M + rn.dot(I_inv @ rn)
                 lam_old = self.contact_lambda[i]
@@ -322,7 +353,7 @@ class RigidProjection:
         if ti.static(self.wall_contact):
             ti.loop_config(serialize=True)
             for b in range(self.rigid.n_bodies):
-                self._wall_contact(b)
+                self._contact(state, s_out, b)
         for p in range(self.model.n_particles):
             self._write(state, s_out, p)
 
