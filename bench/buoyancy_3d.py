@@ -4,7 +4,7 @@ surface every 0.1 s. Archimedes: ρ/ρ_w (0.50 by default, 0.40 for the foam).
 
     python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
         [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3]
-        [--contact-fill F] [--jbar [affine]] [--flip A] [--pressure projection] [--no-save]
+        [--contact-fill F] [--jbar [affine]] [--flip A] [--pressure projection] [--open-min S] [--no-save]
 
 BODY: rigid | elastic | foam (the tasks' floating foam, 400 kg/m³, E = 4.75 kPa). LIQUID: std (the catalogue's
 water) | task (the tasks' water, sound speed 4 m/s) | nt (the same water without tension: p = max(0,
@@ -15,7 +15,8 @@ that separate the transfers' dissipation from the sound waves', docs/engine.md);
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
 --jbar [affine] and --flip A: the Scene's J-bar (plain or affine) and AFLIP share (engine/transfer.py).
 --pressure projection: the liquid's pressure by a projection solved with the body's motion (engine/projection.py;
-the substep count then comes from the flow's CFL).
+the substep count then comes from the flow's CFL); --open-min S: its OPEN_MIN (a shell node whose faces are open by
+less than S in all is the body's; default 0.5), set before the build.
 Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
 particles below that surface (share), both against the 99th percentile of the far field's particle heights
 (`surface mm`, validation.submerged); the cube's centre height (`cube z mm`); and the share of the cube's volume
@@ -61,6 +62,8 @@ def main():
                          "(engine/projection.py)")
     ap.add_argument("--elastic-mu", type=float, default=1e5,
                     help="the elastic body's shear modulus (Pa; its λ is 2.8 μ, a Poisson ratio of 0.37)")
+    ap.add_argument("--open-min", type=float, default=None,
+                    help="engine/projection.py's OPEN_MIN for this run (default: the engine's)")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
@@ -82,6 +85,9 @@ def main():
         model: ClassVar[str] = "liquid_no_tension"
 
     fl.init("cpu")
+    if args.open_min is not None:  # read by the projection's kernels when they compile, i.e. at the build below
+        from fluidlab_core.engine import projection
+        projection.OPEN_MIN = args.open_min
     width, level, b, rho = args.width, 0.06, 0.04, args.density
     from fluidlab_core.tasks import common
     if args.body == "foam":
@@ -124,6 +130,8 @@ def main():
     fields = f"two velocity fields (contact_fill {sim.model.contact_fill:g})" \
         if getattr(sim.model, "two_fields", False) else "one velocity field"
     fields += "".join(f", {k} {kw[k]}" for k in ("jbar", "flip", "pressure") if k in kw)
+    if args.open_min is not None:
+        fields += f", OPEN_MIN {args.open_min:g}"
     what = f"{args.body} cube" + (f" (μ {args.elastic_mu:g} Pa)" if args.body == "elastic" else "")
     text = "\n".join([f"{what} of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
                       f"(λ × {args.bulk_factor:g}), {fields}, "
