@@ -423,10 +423,13 @@ def table(runs: list[dict], refused: list[dict] | None = None, now: dict | None 
     return "\n".join(lines)
 
 
-def paper_table(runs: list[dict]) -> str:
+def paper_table(runs: list[dict], now_returns: dict | None = None) -> str:
     """The final-reward table in the layout of the paper's Table 2, as Markdown: a row per method, a column per
     task, the reward return on the reference physics as mean ± std over seeds (the seed count where it is not the
-    most common one), and the reward constants under it."""
+    most common one), and the reward constants under it. now_returns {key: return}: the returns of runs replayed
+    on a later engine (--reevaluate), which replace the recorded ones (a cell marked *), so that runs made before
+    and after an engine change meet on one physics."""
+    now_returns = now_returns or {}
     ok = [r for r in runs if "final_loss" in r]
     if not ok:
         return ""
@@ -439,13 +442,16 @@ def paper_table(runs: list[dict]) -> str:
     for m in methods:
         cells = []
         for t in task_names:
-            ret = np.array([r["return"] for r in ok if r["task"] == t and r["method"] == m])
+            mine = [r for r in ok if r["task"] == t and r["method"] == m]
+            ret = np.array([now_returns.get(r.get("key"), r["return"]) for r in mine])
+            star = "*" if any(r.get("key") in now_returns for r in mine) else ""
             if len(ret) == 0:
                 cells.append("–")
             elif m == STILL:
-                cells.append(f"{ret.mean():.1f}")
+                cells.append(f"{ret.mean():.1f}{star}")
             else:
-                cells.append(f"{ret.mean():.1f} ± {ret.std():.1f}" + (f" (n={len(ret)})" if len(ret) != usual else ""))
+                cells.append(f"{ret.mean():.1f} ± {ret.std():.1f}{star}"
+                             + (f" (n={len(ret)})" if len(ret) != usual else ""))
         lines.append(f"| {'still tool' if m == STILL else m} | " + " | ".join(cells) + " |")
     consts = []
     for t in task_names:
@@ -454,7 +460,9 @@ def paper_table(runs: list[dict]) -> str:
     lines.append("")
     lines.append(f"Reward return Σ_k (c1 − c2 ℓ_k) on the reference physics, mean ± std over {usual} seeds, "
                  f"size {ok[0]['size']}{_liquid(ok)}, {ok[0]['budget'] // ok[0]['horizon']} rollouts per run. Per task: "
-                 + "; ".join(consts) + ".")
+                 + "; ".join(consts) + "."
+                 + (" *: replayed on a later engine (--reevaluate, reevaluated.jsonl), not the return recorded when "
+                    "the run ran." if any(r.get("key") in now_returns for r in ok) else ""))
     return "\n".join(lines)
 
 
@@ -784,16 +792,19 @@ def report(out: Path, tasks_=None, methods=None, log=print, refused=None) -> lis
 
     rank = {m: i for i, m in enumerate((STILL, *METHODS, *ABLATIONS))}
     records.sort(key=lambda r: (order.get(r["task"], len(order)), rank.get(r["method"], len(rank)), r["seed"]))
-    now = {r["key"]: r["final_loss_now"] for r in load_runs(Path(out) / REEVALUATED) if "key" in r}
-    _write_report(Path(out), records, refused, now, log)
+    again = [r for r in load_runs(Path(out) / REEVALUATED) if "key" in r]
+    now = {r["key"]: r["final_loss_now"] for r in again}
+    now_returns = {r["key"]: r["return_now"] for r in again if "return_now" in r}
+    _write_report(Path(out), records, refused, now, log, now_returns)
     return records
 
 
-def _write_report(out: Path, records: list[dict], refused, now: dict, log) -> None:
-    """OUT/table.txt, OUT/table2.md and the plots of `records`, the table logged."""
+def _write_report(out: Path, records: list[dict], refused, now: dict, log, now_returns: dict | None = None) -> None:
+    """OUT/table.txt, OUT/table2.md (with the re-evaluated returns where there are some) and the plots of
+    `records`, the table logged."""
     text = table(records, refused, now=now)
     (out / "table.txt").write_text(text + "\n")
-    (out / "table2.md").write_text(paper_table(records) + "\n")
+    (out / "table2.md").write_text(paper_table(records, now_returns) + "\n")
     log(text)
     for path in plot(records, out):
         log(f"wrote {path}")

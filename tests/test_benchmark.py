@@ -141,6 +141,13 @@ def test_paper_table_has_a_row_per_method_and_a_column_per_task():
     assert lines[3] == "| dp | 12.0 ± 2.0 | 4.0 ± 1.0 |"
     assert lines[4] == "| sac | – | 1.0 ± 0.0 (n=1) |"  # fewer seeds than the rest are marked; failed runs are not rows
     assert "mean ± std over 2 seeds" in lines[-1] and "A 1 − 200000 ℓ over 75 steps" in lines[-1]
+    assert "replayed" not in lines[-1]
+    # a run replayed on a later engine (--reevaluate) counts with its new return, marked, so that runs made before
+    # and after an engine change meet on one physics
+    runs[1]["key"] = "A|dp|0"
+    lines = benchmark.paper_table(runs, {"A|dp|0": 20.0}).splitlines()
+    assert lines[3] == "| dp | 17.0 ± 3.0* | 4.0 ± 1.0 |"
+    assert "*: replayed on a later engine" in lines[-1]
 
 
 def test_run_table_columns_line_up_under_a_long_method_name():
