@@ -55,8 +55,8 @@ accumulated per point, so that each point's normal velocity relative to the surf
     −g/Δt (g ≥ 0: close the gap this substep, no further)   or   −β g/Δt (g < 0: push out at β per substep),
 with the effective mass 1/(1/M + (r × n)·I⁻¹(r × n)). Frictionless (a static's or tool's friction coefficient acts on
 the liquid, not here). Without it a 2000 kg/m³ cube at 16 cells rested 0.31 Δx into the floor (docs/engine.md, "The
-walls' contact"); beside statics and tools, without it, the same cube sank through a static floor and a paddle
-passed through a cube (tests/test_projection.py).
+walls' contact"); beside statics and tools, with the walls' contact alone, the same cube sank into a static shelf
+at 3.5 mm/s and a paddle's face entered it (tests/test_projection.py).
 
 Code: `RigidModel` holds what does not change (which body each particle belongs to, rest offsets, body
 masses, the bodies' SDFs); `RigidProjection` holds a solver's per-substep body quantities and runs the
