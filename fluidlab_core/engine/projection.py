@@ -40,7 +40,7 @@ the body's σ_f, the tools' in what the statics leave), the liquid's open share 
     (D u)_I = Σ_f s w_f [a_f u_f + σ_f K_f·q + Σ_t σ_t u_t·e_d] / Δx
 A node over a cell inside one (φ ≤ −Δx) is a wall moving with it; so is a node over half a cell inside that is not
 liquid (as air, p = 0 there drew the liquid into the solid), and a liquid node inside one whose faces are open by
-less than OPEN_MIN in all. The room a node's liquid fills is what the walls', statics' and tools' share of its
+less than KIN_OPEN_MIN in all. The room a node's liquid fills is what the walls', statics' and tools' share of its
 B-spline stencil leaves, from a quadrature of their SDF over the stencil's 6³ half-cell boxes (stencil_share_func;
 from φ at the node alone a tank's inner corner counted ½ where ⅞ is wall, and its liquid drained through the walls).
 After the solve a face partly theirs carries the liquid's (and the body's) velocity, not a blend with theirs; a face
@@ -123,6 +123,7 @@ MAX_IT = 400  # the CG's iteration cap
 FILL = 0.5  # a node with this much of its room filled by liquid is liquid (an unknown)
 THETA_MIN = 0.1  # the least share θ of the way from a liquid node to an air node at which p = 0 is placed
 OPEN_MIN = 0.5  # a shell node whose faces are open by less than this (faces, all six together) is the body's
+KIN_OPEN_MIN = 0.5  # a liquid node inside a static or tool whose faces are open by less than this is theirs
 SUB_BOXES = 4  # sub-boxes per axis for a face's solid share where the body's surface may cross its box
 POSITION_CORRECTION = 0.5  # the share of the position correction's displacement applied per substep
 # no position correction within 1 ± this fill. 0.02 until a zero right-hand side gave ψ = 0 instead of re-applying
@@ -681,7 +682,7 @@ class LiquidProjection:
                 xn = ti.Vector(model.origin) + I * model.dx
                 self.vs[I] = ti.cast(vb + wb.cross(xn - c), ti.f64)
         if ti.static(self.has_kin):
-            # a liquid node inside a static or tool whose faces they close but for less than OPEN_MIN (six faces
+            # a liquid node inside a static or tool whose faces they close but for less than KIN_OPEN_MIN (six faces
             # together) is theirs, as the body's shell nodes are: a stray particle's mass in a wall made such a
             # node an unknown whose pressure the few open hundredths of its faces barely fixed, and the position
             # correction's gradient through them threw the liquid 14 m in a substep (the Gathering tank)
@@ -693,7 +694,7 @@ class LiquidProjection:
                             if self._inside(I + sgn * ti.Vector.unit(3, d, ti.i32)):
                                 sk, _ = self._kin(I, d, sgn)
                                 open_share += 1.0 - sk
-                    if open_share < OPEN_MIN:
+                    if open_share < KIN_OPEN_MIN:
                         self.kind[I] = ti.cast(WALL, ti.i8)
                         self.vs[I] = self.k_v[I]
 
