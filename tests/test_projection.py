@@ -83,7 +83,8 @@ def test_heavy_cube_sinks_and_rests_on_the_floor():
     its centre at 20 mm (half its side) within a tenth of a cell at 0.2 s and 0.3 s: the walls' contact
     (engine/rigid.py) holds a body that carries no stress. Measured (2026-12-05): 49.23 mm at 0.1 s, then 19.94,
     19.95, 19.95, 19.95 mm to 0.5 s; without the contact it sat at 17.7 mm, 0.31 Δx into the floor. With the
-    liquid's pressure under it (enclose_air, the next test): 49.46, 19.97, 19.97 mm to 0.3 s."""
+    liquid's pressure under it (enclose_air, the next test): 49.46, 19.97, 19.97 mm to 0.3 s; with the contact
+    moving the body by its change of velocity within the substep (2026-12-06): 49.46, 20.01, 20.00 mm."""
     times, shares, heights, _ = fresh(_dropped, 2000.0, 0.3, every=0.1)
     dx = WIDTH / 16
     report("projection, heavy cube", centre_mm=(heights * 1e3).round(2).tolist(), rest_mm=SIDE / 2 * 1e3)
@@ -95,13 +96,13 @@ def test_heavy_cube_rests_on_a_static_shelf_and_a_paddle_pushes_it_without_enter
     """A rigid body beside a static and a tool on the projection: a 4 cm cube of 2000 kg/m³ dropped into water over a
     static shelf (its top at 27.5 mm, between node rows; 16 cells across a 12 cm tank) sinks and rests on it, its
     centre at 47.5 mm within 0.05 Δx from 0.3 s on; then a paddle (a tool) moving at 0.1 m/s for 0.3 s slides it
-    along the shelf (frictionless) without entering it: its particles stay at least half their spacing (the body's
-    surface) less 0.1 Δx from the paddle's face, and the cube stays on the shelf. The contact of rigid.py against the
-    statics' and the tools' SDFs holds it. Measured (2026-12-06): the centre 47.65 mm at 0.3 s, then 47.49 mm
-    throughout the push, which moves the cube 15 mm, its particles 1.82 mm from the paddle's face at the end (half
-    their spacing: 1.875 mm). Without the contact (the walls' alone, as before): the cube sank into the shelf at
-    3.5 mm/s (47.43, 47.25, 47.08, 46.90, 46.72, 46.55 mm over 0.35-0.6 s) and the paddle's face entered it
-    (its particles 1.65, 1.17, 0.64 mm from the face over the last 0.15 s)."""
+    along the shelf (against the shelf's friction, 0.5 by default) without entering it: its particles stay at least
+    half their spacing (the body's surface) less 0.1 Δx from the paddle's face, and the cube stays on the shelf.
+    The contact of rigid.py against the statics' and the tools' SDFs holds it. Measured (2026-12-06): the centre
+    47.65 mm at 0.3 s, then 47.50 mm throughout the push, which moves the cube 15 mm, its particles 1.82 mm from
+    the paddle's face at the end (half their spacing: 1.875 mm). Without the contact (the walls' alone, as
+    before): the cube sank into the shelf at 3.5 mm/s (47.43, 47.25, 47.08, 46.90, 46.72, 46.55 mm over 0.35-0.6 s)
+    and the paddle's face entered it (its particles 1.65, 1.17, 0.64 mm from the face over the last 0.15 s)."""
     shelf, side, dx = 0.0275, 0.04, WIDTH / 16
 
     def run():
@@ -129,6 +130,47 @@ def test_heavy_cube_rests_on_a_static_shelf_and_a_paddle_pushes_it_without_enter
     assert np.all(np.abs(heights[5:] - rest) < 0.05 * dx)
     assert x_end > 0.07 + 0.01  # pushed: its centre started at 70 mm
     assert gaps.min() > 0.5 * spacing - 0.1 * dx
+
+
+@pytest.mark.parametrize("mu", [0.8, 0.3])
+def test_a_block_on_a_static_slope_sticks_or_slides_as_coulomb_says(mu):
+    """A 3 cm rigid block at rest on a static floor of friction μ under gravity tilted by 30° (an incline, g sin 30°
+    along it): with μ = 0.8 > tan 30° = 0.577 it stays (under 0.05 mm in 0.2 s), with μ = 0.3 it slides at
+    g (sin θ − μ cos θ) = 2.356 m/s² within 3 % (fitted to its first 20 mm; a pool of water, which the projection
+    needs, waits downhill). rigid.py's contact: Coulomb friction in the Gauss–Seidel sweeps, and the body moved with
+    the contact's change of velocity within the substep. Measured (2026-12-06): 0.00 mm and 2.357 m/s²; frictionless
+    4.95 m/s² over its first 0.1 s (g sin θ = 4.905). Before: the contact was frictionless (both slid at g sin θ),
+    and with friction but the position left where the substep's pre-contact velocity put it, the held block crept
+    at g sin θ Δt = 4.9 mm/s (0.97 mm in 0.2 s)."""
+    theta = np.radians(30.0)
+    shelf, side = 0.0275, 0.03
+
+    def run():
+        g = (9.81 * np.sin(theta), 0.0, -9.81 * np.cos(theta))
+        scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, WIDTH), grid_res=16, dt=2e-3, substeps=1, gravity=g,
+                         pressure="projection")
+        scene.add_static(Box((0, 0, 0), (WIDTH, WIDTH, shelf)), friction=mu, name="slope")
+        scene.add_particles(Box((0.105, 0, shelf), (WIDTH, WIDTH, shelf + 0.01)), M.WATER, name="water")
+        scene.add_particles(Box((0.02, 0.045, shelf), (0.02 + side, 0.045 + side, shelf + side)),
+                            M.Rigid("block", density=1000.0), name="block")
+        scene.substeps = 2 * scene.stable_substeps()
+        sim = scene.build()
+        x0 = sim.positions("block").mean(axis=0)
+        t, x = [0.0], [0.0]
+        for _ in range(10):
+            sim.step(n=10)
+            t.append(sim.time)
+            x.append(float(sim.positions("block")[:, 0].mean() - x0[0]))
+        return np.array(t), np.array(x)
+    t, x = fresh(run)
+    expected = max(0.0, 9.81 * (np.sin(theta) - mu * np.cos(theta)))
+    early = x < 0.02
+    a = 2.0 * np.polyfit(t[early], x[early], 2)[0]
+    report("projection, block on a slope", mu=mu, x_mm=(x * 1e3).round(2).tolist(), a=a, expected=expected)
+    if expected == 0.0:
+        assert np.abs(x).max() < 5e-5
+    else:
+        assert a == pytest.approx(expected, rel=0.03)
 
 
 def test_light_cube_dropped_into_a_static_tank_floats_at_archimedes_depth():
@@ -177,7 +219,8 @@ def test_light_cube_on_the_floor_lifts_off_and_rises_to_the_surface():
     liquid's pressure never reached the cube's bottom and the pressure on its top held it down: its centre stayed
     at 20.0 mm over 1 s (2026-12-05). An air pocket that no path of air joins to the free surface and that the body
     borders is now liquid (LiquidProjection.enclose_air), its nodes without liquid mass keeping their velocity
-    from the last solve. Measured (2026-12-05): 21.7, 34.0, 63.6, 70.4 mm at 0.1-0.4 s (it overshoots, as a
+    from the last solve. Measured (2026-12-05): 21.7, 34.0, 63.6, 70.4 mm at 0.1-0.4 s (2026-12-06, the contact moving the body by its change
+    of velocity: 21.7, 34.1, 63.8, 70.3) (it overshoots, as a
     buoyant body rising 4 cm does, and bobs about 60 mm; bench/buoyancy_3d.py rigid std 10 --res 16 --raise -0.04
     --substep-factor 2 --pressure projection: 0.491-0.501 over seconds 1-10). With the pocket nodes taking the
     body's velocity each substep instead: 20.9, 25.4, 46.6, 71.8 mm here, and at 24 cells the cube rose 0.15 mm
