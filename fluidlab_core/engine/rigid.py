@@ -347,7 +347,7 @@ class RigidProjection:
                     w += I_inv @ r.cross(d)
         if touched:  # untouched bodies keep their momentum bit for bit
             # the substep moved the body with its velocity before the contact: move it with the contact's change
-            # as well (x = x_n + Δt v_(n+1)), or a body held by friction on a slope crept at g sin θ Δt per second
+            # as well (x = x_n + Δt v_(n+1)), or a body held by friction on a slope crept at the speed g sin θ Δt
             dv, dw = v - self.momentum[b] / M, w - self.omega[b]
             self.com_sum[b] += M * dt * dv
             self.R[b] = svd3.rotation_from_rotvec(dw * dt) @ self.R[b]
