@@ -149,17 +149,14 @@ class RigidProjection:
         self.backward_svd = svd3.make_backward_svd(1e-10 if real == ti.f64 else 1e-5)
         self.wall_contact = bool(getattr(model, "projection", False))  # the contact (module docstring)
         if self.wall_contact:
-            from fluidlab_core.engine import statics
-
             # the surfaces: the six walls, then the statics, then the tools
-            colliders = getattr(model, "colliders", [])
+            colliders = model.colliders
             self.first_tool = 6 + len(colliders)  # the first tool's surface index
             self.n_surfaces = self.first_tool + model.n_tools
             self._static_sdfs = [c.sdf for c in colliders]
-            self._static_normals = [statics.sdf_normal(c.sdf, 0.01 * model.dx) for c in colliders]
+            self._static_normals = [c.normal for c in colliders]
             # each surface's Coulomb coefficient (a sticky static: no limit)
-            self._mu = [float(model.wall_friction)] * 6 + \
-                [STICKY_MU if getattr(c, "sticky", False) else float(getattr(c, "friction", 0.0)) for c in colliders] + \
+            self._mu = [float(model.wall_friction)] * 6 + [STICKY_MU if c.sticky else c.friction for c in colliders] + \
                 [float(t.spec.friction) for t in model.tools]
             # the contact points of the body being solved: particle, surface k, accumulated normal impulse (N s)
             m = self.n_surfaces * n

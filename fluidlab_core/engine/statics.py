@@ -289,6 +289,7 @@ class Collider:
             return bspline_cdf(-sdf(x) / dx)
 
         self.sdf = sdf  # φ(x) in the world frame (m), negative inside (the liquid projection's face shares)
+        self.normal = normal  # ∇φ/|∇φ| (rigid.py's contact)
         self.friction, self.sticky = float(friction), bool(sticky)  # (rigid.py's contact reads them)
         self.grid = grid
         self.particle = particle
