@@ -263,10 +263,7 @@ class RigidProjection:
         n = ti.Vector.zero(float, 3)
         g = ti.cast(0.0, float)
         us = ti.Vector.zero(float, 3)
-        mu = ti.cast(0.0, float)
-        for j in ti.static(range(len(self._mu))):
-            if k == ti.static(j):
-                mu = ti.cast(self._mu[j], float)
+        mu = ti.cast(self._mu[0], float)  # the walls'
         if k < 6:
             d = k // 2
             side = ti.cast(1 - 2 * (k % 2), float)  # +1 for a lower wall, −1 for an upper one
@@ -276,10 +273,12 @@ class RigidProjection:
             n = side * e
         for j in ti.static(range(len(self._static_sdfs))):
             if k == ti.static(6 + j):
+                mu = ti.cast(self._mu[6 + j], float)
                 g = self._static_sdfs[j](x) - 0.5 * h
                 n = self._static_normals[j](x)
         for t in ti.static(range(self.model.n_tools)):
             if k == ti.static(self.first_tool + t):
+                mu = ti.cast(self._mu[self.first_tool + t], float)
                 pt, Rt = state.tool_p_real[t, s], state.tool_R_real[t, s]
                 xl = Rt.transpose() @ (x - pt)
                 g = self.model.tools[t].sdf_local(xl) - 0.5 * h
