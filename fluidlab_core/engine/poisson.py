@@ -30,6 +30,16 @@ call costs no template dispatch (a V-cycle of ~30 template-kernel calls cost mor
 Stopping: ‖r_k‖₂ ≤ tol ‖b‖₂ (relative residual, b the compatible right-hand side), or the iteration cap; the
 caller decides whether missing the tolerance raises or warns (gas.py). All solver vectors are float64 whatever
 the working precision, so that a relative residual of 1e-6 is reachable on large grids.
+
+Determinism: every sum the solve takes (CG's dot products, the closed regions' sums) adds its terms in one fixed
+order, whatever the threads do: each (i, j) column of cells is summed along k by one thread into `part[i, j]`, each
+i row of those by one thread into `part_i[i]`, and those serially. A parallel reduction (Taichi's thread-local sums,
+or atomic adds) adds them in the order the threads happen to take their blocks, which changes with the machine's
+load; the last bits of a dot product then differ from run to run, and a solve whose residual lands near the
+tolerance stops one iteration earlier or later. A flow over hundreds of steps carries that: AirCirculation's loss
+came out as 7.551720 or 7.551713 on the same input under load (two iteration counts at some step), and its window
+gradient as 0.015033 or 0.015102 (tests/test_air_circulation.py, 2026-12-06), so that two runs of the same
+rollout did not agree.
 """
 
 import numpy as np
@@ -190,8 +200,12 @@ class PoissonSolver:
         self.Ap = ti.field(f64, shape=self.shape)  # L p
         self.region = ti.field(ti.i32, shape=self.shape)  # closed fluid region id (−1: open or solid)
         self.max_regions = 4096
-        self.region_sum = ti.field(f64, shape=self.max_regions)
-        self.region_count = ti.field(f64, shape=self.max_regions)
+        self.region_mean = ti.field(f64, shape=self.max_regions)  # a closed region's mean (summed on the host)
+        self._region_ids = None  # (cells,) int64: each cell's closed region, −1 none (flat, C order)
+        self._region_cells = None  # (n_closed,) float: cells per closed region
+        nx, ny = self.shape[0], self.shape[1]
+        self.part = ti.field(f64, shape=(nx, ny))  # a sum's partial over each (i, j) column (module docstring)
+        self.part_i = ti.field(f64, shape=nx)  # and over each i row of columns
         self.n_closed = 0
         self._regions_for = None  # the flags the regions were labelled for (bytes), to relabel only on change
         self.last = {"iterations": 0, "residual": 0.0, "removed": 0.0}
@@ -322,56 +336,83 @@ class PoissonSolver:
     def _make_cg(self):
         flags, x, b, p, Ap, r0, z0 = self.flags[0], self.x, self.b, self.p, self.Ap, self.r[0], self.z[0]
         op = self._ops[0]
+        part, part_i = self.part, self.part_i
+        nx, ny, nz = self.shape
+
+        @ti.func
+        def total() -> ti.f64:
+            """Σ part in a fixed order (the module docstring's "Determinism"): rows in parallel, then serially."""
+            for i in range(nx):
+                s = ti.f64(0.0)
+                for j in range(ny):
+                    s += part[i, j]
+                part_i[i] = s
+            t = ti.f64(0.0)
+            ti.loop_config(serialize=True)
+            for i in range(nx):
+                t += part_i[i]
+            return t
 
         @ti.kernel
         def start() -> ti.f64:
             """x = 0, r = b; returns b·b (the pressure is not warm-started: the forward and the adjoint solve
             take the same path)."""
-            bb = ti.f64(0.0)
-            for I in ti.grouped(x):
-                x[I] = 0.0
-                r0[I] = b[I]
-                bb += b[I] * b[I]
-            return bb
+            for i, j in ti.ndrange(nx, ny):
+                s = ti.f64(0.0)
+                for k in range(nz):
+                    x[i, j, k] = 0.0
+                    r0[i, j, k] = b[i, j, k]
+                    s += b[i, j, k] * b[i, j, k]
+                part[i, j] = s
+            return total()
 
         @ti.kernel
         def first_direction() -> ti.f64:
             """p = z; returns r·z."""
-            rz = ti.f64(0.0)
-            for I in ti.grouped(p):
-                p[I] = z0[I]
-                rz += r0[I] * z0[I]
-            return rz
+            for i, j in ti.ndrange(nx, ny):
+                s = ti.f64(0.0)
+                for k in range(nz):
+                    p[i, j, k] = z0[i, j, k]
+                    s += r0[i, j, k] * z0[i, j, k]
+                part[i, j] = s
+            return total()
 
         @ti.kernel
         def apply_dot() -> ti.f64:
             """Ap = L p (0 on solid cells); returns p·Ap."""
-            pAp = ti.f64(0.0)
-            for I in ti.grouped(p):
-                v = ti.f64(0.0)
-                if flags[I] == FLUID:
-                    diag, off = op(p, I)
-                    v = diag * p[I] - off
-                Ap[I] = v
-                pAp += p[I] * v
-            return pAp
+            for i, j in ti.ndrange(nx, ny):
+                s = ti.f64(0.0)
+                for k in range(nz):
+                    I = ti.Vector([i, j, k])
+                    v = ti.f64(0.0)
+                    if flags[I] == FLUID:
+                        diag, off = op(p, I)
+                        v = diag * p[I] - off
+                    Ap[I] = v
+                    s += p[I] * v
+                part[i, j] = s
+            return total()
 
         @ti.kernel
         def update(alpha: ti.f64) -> ti.f64:
             """x += α p, r −= α Ap; returns r·r."""
-            rr = ti.f64(0.0)
-            for I in ti.grouped(x):
-                x[I] += alpha * p[I]
-                r0[I] -= alpha * Ap[I]
-                rr += r0[I] * r0[I]
-            return rr
+            for i, j in ti.ndrange(nx, ny):
+                s = ti.f64(0.0)
+                for k in range(nz):
+                    x[i, j, k] += alpha * p[i, j, k]
+                    r0[i, j, k] -= alpha * Ap[i, j, k]
+                    s += r0[i, j, k] * r0[i, j, k]
+                part[i, j] = s
+            return total()
 
         @ti.kernel
         def rz_dot() -> ti.f64:
-            rz = ti.f64(0.0)
-            for I in ti.grouped(r0):
-                rz += r0[I] * z0[I]
-            return rz
+            for i, j in ti.ndrange(nx, ny):
+                s = ti.f64(0.0)
+                for k in range(nz):
+                    s += r0[i, j, k] * z0[i, j, k]
+                part[i, j] = s
+            return total()
 
         @ti.kernel
         def next_direction(beta: ti.f64):
@@ -425,36 +466,33 @@ class PoissonSolver:
                              f"the solids leave too many isolated cells: refine the gas grid")
         remap = np.full(n + 1, -1, dtype=np.int32)
         remap[closed] = np.arange(len(closed), dtype=np.int32)
-        self.region.from_numpy(remap[labels])
+        ids = remap[labels]
+        self.region.from_numpy(ids)
         self.n_closed = len(closed)
+        self._region_ids = ids.ravel().astype(np.int64)
+        self._region_cells = np.bincount(self._region_ids + 1, minlength=self.n_closed + 1)[1:].astype(np.float64)
 
     @ti.kernel
-    def _region_sums(self, f: ti.template(), n: ti.i32):
-        for i in range(n):
-            self.region_sum[i] = 0.0
-            self.region_count[i] = 0.0
+    def _subtract_region_means(self, f: ti.template()):
         for I in ti.grouped(f):
             g = self.region[I]
             if g >= 0:
-                self.region_sum[g] += f[I]
-                self.region_count[g] += 1.0
-
-    @ti.kernel
-    def _remove_means(self, f: ti.template()) -> ti.f64:
-        removed = ti.f64(0.0)
-        for I in ti.grouped(f):
-            g = self.region[I]
-            if g >= 0:
-                m = self.region_sum[g] / self.region_count[g]
-                f[I] -= m
-                removed += m * m
-        return removed
+                f[I] -= self.region_mean[g]
 
     def _remove_region_means(self, f) -> float:
+        """Subtract each closed region's mean from f; returns ‖the removed part‖₂. The sums are numpy's bincount
+        over the cells in their order, so they do not depend on the threads (module docstring, "Determinism")."""
         if self.n_closed == 0:
             return 0.0
-        self._region_sums(f, self.n_closed)
-        return float(np.sqrt(max(self._remove_means(f), 0.0)))
+        ids = self._region_ids
+        inside = ids >= 0
+        sums = np.bincount(ids[inside], weights=f.to_numpy().ravel()[inside], minlength=self.n_closed)
+        means = sums / self._region_cells
+        padded = np.zeros(self.max_regions)
+        padded[: self.n_closed] = means
+        self.region_mean.from_numpy(padded)
+        self._subtract_region_means(f)
+        return float(np.sqrt(np.dot(self._region_cells, means * means)))
 
     def make_compatible(self) -> float:
         """Subtract each closed region's mean from b (L y = b is then solvable); returns ‖removed part‖₂."""
