@@ -104,8 +104,7 @@ class Scene:
         Poisson solve on the grid, with one rigid body's velocity, or the deformable solids' nodes' velocities, as
         unknowns of the same solve, so that a body floats at Archimedes' depth; engine/projection.py). "projection"
         is forward only, for liquids (of one density or several) with one rigid body or deformable solids (not
-        both), statics and tools (a rigid body meets them through engine/rigid.py's contact), emitters, and
-        without gas for now (a
+        both), statics and tools (a rigid body meets them through engine/rigid.py's contact), emitters and gas (a
         liquid's bulk viscosity or damping, which act on its pressure, are then dropped: the projection sets the
         pressure; its shear viscosity stays); its flip defaults to 0.99 (docs/engine.md, "Floating bodies: the projection"). flip defaults to 0 (APIC)
         otherwise."""
@@ -656,8 +655,6 @@ class Scene:
             why.append("gradients (it has a forward solver only; build with requires_grad=False)")
         if self.jbar:
             why.append("jbar (the projection holds the liquid's volume itself)")
-        if self.gas is not None:
-            why.append("gas")
         from fluidlab_core.engine import constitutive
 
         def liquid(m):  # a liquid by its material and by its constitutive model (the solver's test)
