@@ -114,7 +114,15 @@ solver.flags[0].from_numpy(flags)
 solver.update_flags(flags)
 solver.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
 rep = solver.solve(1e-6, 200)
-print(rep["iterations"], rep["removed_norm"].hex(), hashlib.sha1(solver.x.to_numpy().tobytes()).hexdigest())
+x = solver.x.to_numpy()
+gpu_order = PoissonSolver((n, n, n), (False,) * 6, columns_along_i=True)  # a GPU's order of the sums, here
+gpu_order.flags[0].from_numpy(flags)
+gpu_order.update_flags(flags)
+gpu_order.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
+rep_gpu = gpu_order.solve(1e-6, 200)
+difference = float(np.abs(gpu_order.x.to_numpy() - x).max() / np.abs(x).max())
+print(rep["iterations"], rep["removed_norm"].hex(), hashlib.sha1(x.tobytes()).hexdigest(), rep_gpu["iterations"],
+      difference)
 """
 
 
@@ -122,7 +130,8 @@ print(rep["iterations"], rep["removed_norm"].hex(), hashlib.sha1(solver.x.to_num
 def test_the_pressure_solve_gives_the_same_bits_with_any_number_of_threads():
     """The pressure solve's sums run in a fixed order (engine/poisson.py, "Determinism"): the same right-hand side
     solved in processes with 1, 2 and 3 CPU threads gives the same solution bit for bit (a closed 20³ box with a
-    solid block: one closed region, so the region means are taken too). With Taichi's parallel reductions the
+    solid block: one closed region, so the region means are taken too), and the GPU's order of the sums, run here,
+    gives the same solution to their rounding. With Taichi's parallel reductions the
     three differed (6 iterations each, three different solutions), and under load the same process could give
     two different solutions of one input: AirCirculation's loss took one of two values and its window gradient
     test failed in some suite runs (docs/engine.md)."""
@@ -135,9 +144,12 @@ def test_the_pressure_solve_gives_the_same_bits_with_any_number_of_threads():
                              timeout=600)
         assert run.returncode == 0, run.stderr[-2000:]
         outs.append(run.stdout.strip().splitlines()[-1].split())  # after Taichi's banner
-    report("pressure solve by thread count", iterations=[o[0] for o in outs], solutions=[o[2][:12] for o in outs])
+    report("pressure solve by thread count", iterations=[o[0] for o in outs], solutions=[o[2][:12] for o in outs],
+           gpu_order_iterations=outs[0][3], gpu_order_difference=float(outs[0][4]))
     assert int(outs[0][0]) > 1 and float.fromhex(outs[0][1]) > 0  # CG iterated and a mean was removed
     assert outs[1] == outs[0] and outs[2] == outs[0]
+    # the GPU's order (columns along i), run here: the same solve to the rounding of its sums
+    assert outs[0][3] == outs[0][0] and float(outs[0][4]) < 1e-9
 
 
 def test_a_flow_too_fast_or_not_finite_stops_the_run_naming_the_step_and_field(room):

@@ -32,8 +32,9 @@ caller decides whether missing the tolerance raises or warns (gas.py). All solve
 the working precision, so that a relative residual of 1e-6 is reachable on large grids.
 
 Determinism: every sum the solve takes (CG's dot products, the closed regions' sums) adds its terms in one fixed
-order, whatever the threads do: each (i, j) column of cells is summed along k by one thread into `part[i, j]`, each
-i row of those by one thread into `part_i[i]`, and those serially. A parallel reduction (Taichi's thread-local sums,
+order, whatever the threads do: each column of cells is summed by one thread into `part` (on the CPU the (i, j)
+columns along k, the memory's fastest axis; on a GPU the (j, k) columns along i, so that neighbouring threads read
+neighbouring cells), each row of those by one thread into `part_row`, and those serially. A parallel reduction (Taichi's thread-local sums,
 or atomic adds) adds them in the order the threads happen to take their blocks, which changes with the machine's
 load; the last bits of a dot product then differ from run to run, and a solve whose residual lands near the
 tolerance stops one iteration earlier or later. A flow over hundreds of steps carries that: AirCirculation's loss
@@ -181,10 +182,11 @@ class PoissonSolver:
     """MGPCG for L y = r on a grid of `shape` cells (see the module docstring).
 
     open_walls: 6 bools, (x−, x+, y−, y+, z−, z+): which domain walls are Dirichlet (y = 0 outside).
-    The fine level's cell flags (`flags[0]`, FLUID or SOLID) are written by the gas solver before `solve`."""
+    The fine level's cell flags (`flags[0]`, FLUID or SOLID) are written by the gas solver before `solve`.
+    columns_along_i: the order of the sums (module docstring, "Determinism"); None: along i on a GPU, else along k."""
 
     def __init__(self, shape, open_walls, pre_sweeps: int = 2, post_sweeps: int = 2, bottom_sweeps: int = 30,
-                 weighted: bool = False):
+                 weighted: bool = False, columns_along_i: bool | None = None):
         self.shape = tuple(int(n) for n in shape)
         self.open_walls = tuple(bool(b) for b in open_walls)
         self.shapes = level_shapes(self.shape)
@@ -203,9 +205,13 @@ class PoissonSolver:
         self.region_mean = ti.field(f64, shape=self.max_regions)  # a closed region's mean (summed on the host)
         self._region_ids = None  # (cells,) int64: each cell's closed region, −1 none (flat, C order)
         self._region_cells = None  # (n_closed,) float: cells per closed region
-        nx, ny = self.shape[0], self.shape[1]
-        self.part = ti.field(f64, shape=(nx, ny))  # a sum's partial over each (i, j) column (module docstring)
-        self.part_i = ti.field(f64, shape=nx)  # and over each i row of columns
+        # the sums' columns (module docstring, "Determinism"): along i on a GPU, along k on the CPU
+        self.columns_along_i = (ti.lang.impl.current_cfg().arch == ti.cuda if columns_along_i is None
+                                else bool(columns_along_i))
+        nx, ny, nz = self.shape
+        outer = (ny, nz) if self.columns_along_i else (nx, ny)
+        self.part = ti.field(f64, shape=outer)  # a sum's partial over each column of cells
+        self.part_row = ti.field(f64, shape=outer[0])  # and over each row of columns
         self.n_closed = 0
         self._regions_for = None  # the flags the regions were labelled for (bytes), to relabel only on change
         self.last = {"iterations": 0, "residual": 0.0, "removed": 0.0}
@@ -336,82 +342,95 @@ class PoissonSolver:
     def _make_cg(self):
         flags, x, b, p, Ap, r0, z0 = self.flags[0], self.x, self.b, self.p, self.Ap, self.r[0], self.z[0]
         op = self._ops[0]
-        part, part_i = self.part, self.part_i
+        part, part_row = self.part, self.part_row
         nx, ny, nz = self.shape
+        along_i = self.columns_along_i
+        na, nb, nc = (ny, nz, nx) if along_i else (nx, ny, nz)  # columns (a, b), each summed along c
+
+        @ti.func
+        def cell(a, b, c):
+            I = ti.Vector([a, b, c])
+            if ti.static(along_i):
+                I = ti.Vector([c, a, b])
+            return I
 
         @ti.func
         def total() -> ti.f64:
             """Σ part in a fixed order (the module docstring's "Determinism"): rows in parallel, then serially."""
-            for i in range(nx):
+            for a in range(na):
                 s = ti.f64(0.0)
-                for j in range(ny):
-                    s += part[i, j]
-                part_i[i] = s
+                for b in range(nb):
+                    s += part[a, b]
+                part_row[a] = s
             t = ti.f64(0.0)
             ti.loop_config(serialize=True)
-            for i in range(nx):
-                t += part_i[i]
+            for a in range(na):
+                t += part_row[a]
             return t
 
         @ti.kernel
         def start() -> ti.f64:
             """x = 0, r = b; returns b·b (the pressure is not warm-started: the forward and the adjoint solve
             take the same path)."""
-            for i, j in ti.ndrange(nx, ny):
+            for a, b_ in ti.ndrange(na, nb):
                 s = ti.f64(0.0)
-                for k in range(nz):
-                    x[i, j, k] = 0.0
-                    r0[i, j, k] = b[i, j, k]
-                    s += b[i, j, k] * b[i, j, k]
-                part[i, j] = s
+                for c in range(nc):
+                    I = cell(a, b_, c)
+                    x[I] = 0.0
+                    r0[I] = b[I]
+                    s += b[I] * b[I]
+                part[a, b_] = s
             return total()
 
         @ti.kernel
         def first_direction() -> ti.f64:
             """p = z; returns r·z."""
-            for i, j in ti.ndrange(nx, ny):
+            for a, b in ti.ndrange(na, nb):
                 s = ti.f64(0.0)
-                for k in range(nz):
-                    p[i, j, k] = z0[i, j, k]
-                    s += r0[i, j, k] * z0[i, j, k]
-                part[i, j] = s
+                for c in range(nc):
+                    I = cell(a, b, c)
+                    p[I] = z0[I]
+                    s += r0[I] * z0[I]
+                part[a, b] = s
             return total()
 
         @ti.kernel
         def apply_dot() -> ti.f64:
             """Ap = L p (0 on solid cells); returns p·Ap."""
-            for i, j in ti.ndrange(nx, ny):
+            for a, b in ti.ndrange(na, nb):
                 s = ti.f64(0.0)
-                for k in range(nz):
-                    I = ti.Vector([i, j, k])
+                for c in range(nc):
+                    I = cell(a, b, c)
                     v = ti.f64(0.0)
                     if flags[I] == FLUID:
                         diag, off = op(p, I)
                         v = diag * p[I] - off
                     Ap[I] = v
                     s += p[I] * v
-                part[i, j] = s
+                part[a, b] = s
             return total()
 
         @ti.kernel
         def update(alpha: ti.f64) -> ti.f64:
             """x += α p, r −= α Ap; returns r·r."""
-            for i, j in ti.ndrange(nx, ny):
+            for a, b in ti.ndrange(na, nb):
                 s = ti.f64(0.0)
-                for k in range(nz):
-                    x[i, j, k] += alpha * p[i, j, k]
-                    r0[i, j, k] -= alpha * Ap[i, j, k]
-                    s += r0[i, j, k] * r0[i, j, k]
-                part[i, j] = s
+                for c in range(nc):
+                    I = cell(a, b, c)
+                    x[I] += alpha * p[I]
+                    r0[I] -= alpha * Ap[I]
+                    s += r0[I] * r0[I]
+                part[a, b] = s
             return total()
 
         @ti.kernel
         def rz_dot() -> ti.f64:
-            for i, j in ti.ndrange(nx, ny):
+            for a, b in ti.ndrange(na, nb):
                 s = ti.f64(0.0)
-                for k in range(nz):
-                    s += r0[i, j, k] * z0[i, j, k]
-                part[i, j] = s
+                for c in range(nc):
+                    I = cell(a, b, c)
+                    s += r0[I] * z0[I]
+                part[a, b] = s
             return total()
 
         @ti.kernel
