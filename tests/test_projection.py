@@ -409,7 +409,7 @@ def test_gas_blows_over_a_projected_pool_and_drags_a_foam_blob_above_it():
     out through x+, and a 2 cm blob of foam (500 kg/m³) 6 cm above the water that the gas drags (k = 20 /s).
     After 0.06 s: the pool's cells are solid for the gas, three rows everywhere; the gas is divergence-free beside
     them; the foam's mean x velocity is the wind's U (1 − exp(−k t)) = 0.349 m/s within 5 % (measured 0.342, 2 %
-    under; the same scene without gravity on the default liquid reads 0.3 % under at 0.2 s); and the pool stays at
+    under; test_gas.py's coupling scene, without gravity, reads 0.3 % under at 0.2 s on either liquid); and the pool stays at
     rest, its mean speed under 3 cm/s (measured 1.5 cm/s: the initial packing settling, its top 1 mm lower; with
     the liquid standing along the wrong axis, a dam break, the same reads 0.42 m/s)."""
     U, k, t = 0.5, 20.0, 0.06
