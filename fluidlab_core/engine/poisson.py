@@ -203,8 +203,10 @@ class PoissonSolver:
         self.region = ti.field(ti.i32, shape=self.shape)  # closed fluid region id (−1: open or solid)
         self.max_regions = 4096
         self.region_mean = ti.field(f64, shape=self.max_regions)  # a closed region's mean (summed on the host)
-        self._region_ids = None  # (cells,) int64: each cell's closed region, −1 none (flat, C order)
+        self._region_cells_at = None  # flat indices of the cells in closed regions (update_flags)
+        self._region_of = None  # their closed regions
         self._region_cells = None  # (n_closed,) float: cells per closed region
+        self._region_means = np.zeros(self.max_regions)  # the host's copy of region_mean
         # the sums' columns (module docstring, "Determinism"): along i on a GPU, along k on the CPU
         self.columns_along_i = (ti.lang.impl.current_cfg().arch == ti.cuda if columns_along_i is None
                                 else bool(columns_along_i))
@@ -345,92 +347,92 @@ class PoissonSolver:
         part, part_row = self.part, self.part_row
         nx, ny, nz = self.shape
         along_i = self.columns_along_i
-        na, nb, nc = (ny, nz, nx) if along_i else (nx, ny, nz)  # columns (a, b), each summed along c
+        n1, n2, n3 = (ny, nz, nx) if along_i else (nx, ny, nz)  # columns (i1, i2), each summed along i3
 
         @ti.func
-        def cell(a, b, c):
-            I = ti.Vector([a, b, c])
+        def cell(i1, i2, i3):
+            I = ti.Vector([i1, i2, i3])
             if ti.static(along_i):
-                I = ti.Vector([c, a, b])
+                I = ti.Vector([i3, i1, i2])
             return I
 
         @ti.func
         def total() -> ti.f64:
             """Σ part in a fixed order (the module docstring's "Determinism"): rows in parallel, then serially."""
-            for a in range(na):
+            for i1 in range(n1):
                 s = ti.f64(0.0)
-                for b in range(nb):
-                    s += part[a, b]
-                part_row[a] = s
+                for i2 in range(n2):
+                    s += part[i1, i2]
+                part_row[i1] = s
             t = ti.f64(0.0)
             ti.loop_config(serialize=True)
-            for a in range(na):
-                t += part_row[a]
+            for i1 in range(n1):
+                t += part_row[i1]
             return t
 
         @ti.kernel
         def start() -> ti.f64:
             """x = 0, r = b; returns b·b (the pressure is not warm-started: the forward and the adjoint solve
             take the same path)."""
-            for a, b_ in ti.ndrange(na, nb):
+            for i1, i2 in ti.ndrange(n1, n2):
                 s = ti.f64(0.0)
-                for c in range(nc):
-                    I = cell(a, b_, c)
+                for i3 in range(n3):
+                    I = cell(i1, i2, i3)
                     x[I] = 0.0
                     r0[I] = b[I]
                     s += b[I] * b[I]
-                part[a, b_] = s
+                part[i1, i2] = s
             return total()
 
         @ti.kernel
         def first_direction() -> ti.f64:
             """p = z; returns r·z."""
-            for a, b in ti.ndrange(na, nb):
+            for i1, i2 in ti.ndrange(n1, n2):
                 s = ti.f64(0.0)
-                for c in range(nc):
-                    I = cell(a, b, c)
+                for i3 in range(n3):
+                    I = cell(i1, i2, i3)
                     p[I] = z0[I]
                     s += r0[I] * z0[I]
-                part[a, b] = s
+                part[i1, i2] = s
             return total()
 
         @ti.kernel
         def apply_dot() -> ti.f64:
             """Ap = L p (0 on solid cells); returns p·Ap."""
-            for a, b in ti.ndrange(na, nb):
+            for i1, i2 in ti.ndrange(n1, n2):
                 s = ti.f64(0.0)
-                for c in range(nc):
-                    I = cell(a, b, c)
+                for i3 in range(n3):
+                    I = cell(i1, i2, i3)
                     v = ti.f64(0.0)
                     if flags[I] == FLUID:
                         diag, off = op(p, I)
                         v = diag * p[I] - off
                     Ap[I] = v
                     s += p[I] * v
-                part[a, b] = s
+                part[i1, i2] = s
             return total()
 
         @ti.kernel
         def update(alpha: ti.f64) -> ti.f64:
             """x += α p, r −= α Ap; returns r·r."""
-            for a, b in ti.ndrange(na, nb):
+            for i1, i2 in ti.ndrange(n1, n2):
                 s = ti.f64(0.0)
-                for c in range(nc):
-                    I = cell(a, b, c)
+                for i3 in range(n3):
+                    I = cell(i1, i2, i3)
                     x[I] += alpha * p[I]
                     r0[I] -= alpha * Ap[I]
                     s += r0[I] * r0[I]
-                part[a, b] = s
+                part[i1, i2] = s
             return total()
 
         @ti.kernel
         def rz_dot() -> ti.f64:
-            for a, b in ti.ndrange(na, nb):
+            for i1, i2 in ti.ndrange(n1, n2):
                 s = ti.f64(0.0)
-                for c in range(nc):
-                    I = cell(a, b, c)
+                for i3 in range(n3):
+                    I = cell(i1, i2, i3)
                     s += r0[I] * z0[I]
-                part[a, b] = s
+                part[i1, i2] = s
             return total()
 
         @ti.kernel
@@ -488,8 +490,10 @@ class PoissonSolver:
         ids = remap[labels]
         self.region.from_numpy(ids)
         self.n_closed = len(closed)
-        self._region_ids = ids.ravel().astype(np.int64)
-        self._region_cells = np.bincount(self._region_ids + 1, minlength=self.n_closed + 1)[1:].astype(np.float64)
+        flat = ids.ravel()
+        self._region_cells_at = np.flatnonzero(flat >= 0)  # the cells in closed regions (flat, C order)
+        self._region_of = flat[self._region_cells_at].astype(np.int64)  # and their regions
+        self._region_cells = np.bincount(self._region_of, minlength=self.n_closed).astype(np.float64)
 
     @ti.kernel
     def _subtract_region_means(self, f: ti.template()):
@@ -503,13 +507,10 @@ class PoissonSolver:
         over the cells in their order, so they do not depend on the threads (module docstring, "Determinism")."""
         if self.n_closed == 0:
             return 0.0
-        ids = self._region_ids
-        inside = ids >= 0
-        sums = np.bincount(ids[inside], weights=f.to_numpy().ravel()[inside], minlength=self.n_closed)
-        means = sums / self._region_cells
-        padded = np.zeros(self.max_regions)
-        padded[: self.n_closed] = means
-        self.region_mean.from_numpy(padded)
+        values = f.to_numpy().ravel()[self._region_cells_at]
+        means = np.bincount(self._region_of, weights=values, minlength=self.n_closed) / self._region_cells
+        self._region_means[: self.n_closed] = means
+        self.region_mean.from_numpy(self._region_means)
         self._subtract_region_means(f)
         return float(np.sqrt(np.dot(self._region_cells, means * means)))
 
