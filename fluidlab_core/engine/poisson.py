@@ -356,84 +356,69 @@ class PoissonSolver:
                 I = ti.Vector([i3, i1, i2])
             return I
 
+        def fixed_order_sum(term):
+            """A kernel (α) -> Σ_I term(I, α) over the cells, the sum in a fixed order (the module docstring's
+            "Determinism"): each column by one thread, the columns' sums row by row in parallel, the rows serially.
+            term may also write the cell's vector entries."""
+
+            @ti.kernel
+            def kernel(alpha: ti.f64) -> ti.f64:
+                for i1, i2 in ti.ndrange(n1, n2):
+                    s = ti.f64(0.0)
+                    for i3 in range(n3):
+                        s += term(cell(i1, i2, i3), alpha)
+                    part[i1, i2] = s
+                for i1 in range(n1):
+                    s = ti.f64(0.0)
+                    for i2 in range(n2):
+                        s += part[i1, i2]
+                    part_row[i1] = s
+                t = ti.f64(0.0)
+                ti.loop_config(serialize=True)
+                for i1 in range(n1):
+                    t += part_row[i1]
+                return t
+
+            return kernel
+
         @ti.func
-        def total() -> ti.f64:
-            """Σ part in a fixed order (the module docstring's "Determinism"): rows in parallel, then serially."""
-            for i1 in range(n1):
-                s = ti.f64(0.0)
-                for i2 in range(n2):
-                    s += part[i1, i2]
-                part_row[i1] = s
-            t = ti.f64(0.0)
-            ti.loop_config(serialize=True)
-            for i1 in range(n1):
-                t += part_row[i1]
-            return t
+        def start_term(I, alpha):
+            """x = 0, r = b; b·b (the pressure is not warm-started: the forward and the adjoint solve take the same
+            path)."""
+            x[I] = 0.0
+            r0[I] = b[I]
+            return b[I] * b[I]
 
-        @ti.kernel
-        def start() -> ti.f64:
-            """x = 0, r = b; returns b·b (the pressure is not warm-started: the forward and the adjoint solve
-            take the same path)."""
-            for i1, i2 in ti.ndrange(n1, n2):
-                s = ti.f64(0.0)
-                for i3 in range(n3):
-                    I = cell(i1, i2, i3)
-                    x[I] = 0.0
-                    r0[I] = b[I]
-                    s += b[I] * b[I]
-                part[i1, i2] = s
-            return total()
+        @ti.func
+        def first_direction_term(I, alpha):
+            """p = z; r·z."""
+            p[I] = z0[I]
+            return r0[I] * z0[I]
 
-        @ti.kernel
-        def first_direction() -> ti.f64:
-            """p = z; returns r·z."""
-            for i1, i2 in ti.ndrange(n1, n2):
-                s = ti.f64(0.0)
-                for i3 in range(n3):
-                    I = cell(i1, i2, i3)
-                    p[I] = z0[I]
-                    s += r0[I] * z0[I]
-                part[i1, i2] = s
-            return total()
+        @ti.func
+        def apply_dot_term(I, alpha):
+            """Ap = L p (0 on solid cells); p·Ap."""
+            v = ti.f64(0.0)
+            if flags[I] == FLUID:
+                diag, off = op(p, I)
+                v = diag * p[I] - off
+            Ap[I] = v
+            return p[I] * v
 
-        @ti.kernel
-        def apply_dot() -> ti.f64:
-            """Ap = L p (0 on solid cells); returns p·Ap."""
-            for i1, i2 in ti.ndrange(n1, n2):
-                s = ti.f64(0.0)
-                for i3 in range(n3):
-                    I = cell(i1, i2, i3)
-                    v = ti.f64(0.0)
-                    if flags[I] == FLUID:
-                        diag, off = op(p, I)
-                        v = diag * p[I] - off
-                    Ap[I] = v
-                    s += p[I] * v
-                part[i1, i2] = s
-            return total()
+        @ti.func
+        def update_term(I, alpha):
+            """x += α p, r −= α Ap; r·r."""
+            x[I] += alpha * p[I]
+            r0[I] -= alpha * Ap[I]
+            return r0[I] * r0[I]
 
-        @ti.kernel
-        def update(alpha: ti.f64) -> ti.f64:
-            """x += α p, r −= α Ap; returns r·r."""
-            for i1, i2 in ti.ndrange(n1, n2):
-                s = ti.f64(0.0)
-                for i3 in range(n3):
-                    I = cell(i1, i2, i3)
-                    x[I] += alpha * p[I]
-                    r0[I] -= alpha * Ap[I]
-                    s += r0[I] * r0[I]
-                part[i1, i2] = s
-            return total()
+        @ti.func
+        def rz_term(I, alpha):
+            return r0[I] * z0[I]
 
-        @ti.kernel
-        def rz_dot() -> ti.f64:
-            for i1, i2 in ti.ndrange(n1, n2):
-                s = ti.f64(0.0)
-                for i3 in range(n3):
-                    I = cell(i1, i2, i3)
-                    s += r0[I] * z0[I]
-                part[i1, i2] = s
-            return total()
+        start, first_direction = fixed_order_sum(start_term), fixed_order_sum(first_direction_term)
+        apply_dot, update, rz_dot = (fixed_order_sum(apply_dot_term), fixed_order_sum(update_term),
+                                     fixed_order_sum(rz_term))
 
         @ti.kernel
         def next_direction(beta: ti.f64):
@@ -450,8 +435,9 @@ class PoissonSolver:
                     v = diag * y[I] - off
                 out[I] = v
 
-        self._start, self._first_direction, self._apply_dot = start, first_direction, apply_dot
-        self._update, self._rz_dot, self._next_direction, self.apply = update, rz_dot, next_direction, apply_to
+        self._start, self._first_direction = (lambda: start(0.0)), (lambda: first_direction(0.0))
+        self._apply_dot, self._rz_dot = (lambda: apply_dot(0.0)), (lambda: rz_dot(0.0))
+        self._update, self._next_direction, self.apply = update, next_direction, apply_to
 
     # --- compatibility on closed regions ----------------------------------------------------------------------
     def update_flags(self, flags: np.ndarray | None = None, links=None):
