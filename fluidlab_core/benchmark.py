@@ -512,12 +512,12 @@ def _overview(ok: list[dict], out: Path, plt) -> Path | None:
     is better; 0 is the still tool, 1 a loss of zero; it reads the same for Mixing, whose loss is negative)."""
     task_names = [t for t in dict.fromkeys(r["task"] for r in ok)
                   if any(r["task"] == t and r["method"] == STILL for r in ok)]
-    if not task_names:
+    methods = [m for m in dict.fromkeys(r["method"] for r in ok) if m != STILL]
+    if not task_names or not methods:  # nothing beside the still tool (every method refused): nothing to draw
         return None
     cols = min(4, len(task_names))
     rows = -(-len(task_names) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), squeeze=False)
-    methods = [m for m in dict.fromkeys(r["method"] for r in ok) if m != STILL]
     colors = {m: f"C{i}" for i, m in enumerate(methods)}
     for ax, task in zip(axes.flat, task_names):
         still = next(r for r in ok if r["task"] == task and r["method"] == STILL)["final_loss"]

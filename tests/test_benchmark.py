@@ -238,7 +238,7 @@ def _fake_run(out: Path, task: str, method: str, seed: int, loss: float, size="m
     """A finished run's record as a sweep writes it, with its trajectory and report files under OUT."""
     spec = {"task": task, "method": method, "seed": seed, "size": size, "budget": budget}
     rec = {**spec, "key": benchmark.run_key(spec), "final_loss": loss, "curve": [[budget, loss, 1.0]], "wall": 1.0,
-           "return": 0.0}
+           "return": 0.0, "horizon": min(budget, 100), "reward_c1": 1.0, "reward_c2": 200.0}
     if method != benchmark.STILL:
         rel = Path("trajectories") / task / f"{task}_{method}_seed{seed}_{size}.json"
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -322,3 +322,14 @@ def test_a_sweep_on_the_projected_liquid_refuses_the_gradient_methods_and_keeps_
     assert benchmark.run_name({**spec, "pressure": "projection"}) == "GatheringEasy_cma-es_seed0_small_projection"
     assert benchmark._record({**spec, "pressure": "projection"})["pressure"] == "projection"
     assert "pressure" not in benchmark._record(spec)
+
+
+def test_a_folder_with_only_the_still_tools_runs_reports_without_a_figure_of_methods(tmp_path):
+    """A sweep whose every method was refused (a budget too small for CMA-ES's 30 generations) still runs the still
+    tool; its report used to end in matplotlib's 'number sections must be larger than 0' (a legend of no methods)."""
+    _fake_run(tmp_path, "GatheringEasy", "still", 0, 5e-3)
+    _fake_run(tmp_path, "GatheringHard", "still", 0, 4e-3)
+    records = benchmark.report(tmp_path, log=lambda *_: None)
+    assert [r["method"] for r in records] == ["still", "still"]
+    assert "GatheringHard" in (tmp_path / "table.txt").read_text()
+    assert (tmp_path / "curves_GatheringEasy.png").is_file() and not (tmp_path / "overview.png").exists()
