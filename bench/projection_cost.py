@@ -91,7 +91,7 @@ def main():
         stages.append(("projection: statics and tools", lambda st: proj.kinematic(st)))
     stages += [("projection: classify", lambda st: proj.classify()),
               ("projection: enclosed air (host labels)", lambda st: proj.enclose_air()),
-              ("projection: right-hand side, MIC(0)", lambda st: (proj.rhs(), proj.mic0())),
+              ("projection: right-hand side, MIC(0)", lambda st: (proj.rhs(), proj.factor())),
               ("projection: pressure CG", lambda st: proj.solve(proj.iterations)),
               ("projection: correction and faces", lambda st: (proj.body_impulse(st), proj.correct(st), proj.faces())),
               ("projection: position correction", lambda st: proj.position_correction()),

@@ -519,29 +519,43 @@ def test_a_trajectory_found_on_the_projection_records_it_and_replays_on_it():
 @pytest.mark.parametrize("body", ["rigid", "elastic"])
 def test_the_serial_and_the_parallel_cg_give_the_same_flow(body):
     """The pressure solve's two paths (projection.py, serial_cg): one serial launch for the whole CG (the CPU's) and
-    one parallel launch an iteration (a GPU's) do the same arithmetic in another order of summation. A 500 kg/m³
-    cube, rigid (the body's rank-6 term) or elastic (the solids' nodes as unknowns), dropped onto water at 12 cells
-    for 40 steps (0.08 s): the same CG iterations in every substep to within one, and every particle within 1e-5 m
-    of the other path's (measured 2026-12-05: rigid, 681 iterations on both paths and the same positions; elastic,
-    2613 and 2614, positions within 5e-8 m). It caught the serial path's first form, which read the body's sums
-    back from a field inside its loop: right at Taichi's opt_level 1, 400 iterations a substep at the suite's
-    opt_level 0 (projection.py, _bx_of_serial)."""
+    one parallel launch an iteration (a GPU's) do the same arithmetic, the parallel path's sums in a fixed order of
+    chunks. A 500 kg/m³ cube, rigid (the body's rank-6 term) or elastic (the solids' nodes as unknowns), dropped onto
+    water at 12 cells for 40 steps (0.08 s): the same CG iterations in every substep to within one, and every
+    particle within 1e-5 m of the other path's (measured 2026-12-06: the same bits on both paths, 681 and 2612
+    iterations). It caught the serial path's first form, which read the body's sums back from a field inside its
+    loop: right at Taichi's opt_level 1, 400 iterations a substep at the suite's opt_level 0 (projection.py,
+    _bx_of_serial).
+
+    The GPU's preconditioner, the diagonal (Jacobi: MIC(0)'s sweeps are serial, and its unknowns listed by columns in
+    parallel), on the parallel path: the same flow to the solves' tolerances (the pressure's 1e-7, the position
+    correction's 1e-3), in 2-5x MIC(0)'s iterations. Measured 2026-12-06 (the suite's opt_level 0): 2231 and 8013
+    iterations against 681 and 2614 (3.3x, 3.1x); the particles' median distance from the MIC(0) run's 1.9e-6 m
+    (rigid) and 3.3e-6 m (elastic; 6.4e-5 m at opt_level 1), a few surface particles' up to 0.7 and 1.3 mm (a
+    tenth of a cell: the position correction's tolerance, 1e-3), the cube's centre 1.2e-5 and 1.9e-6 m apart."""
     material = (M.Rigid("rigid_500", density=500.0) if body == "rigid"
                 else M.Elastic("elastic_500", density=500.0, shear_modulus=5e3, lame_lambda=1e4))
 
-    def run(serial):
+    def run(serial, preconditioner="mic"):
         sim, scene = validation.floating_cube_sim(12, material, M.WATER, drop=0.01, width=WIDTH, side=SIDE,
                                                   pressure="projection")
         proj = sim.solver.proj
         proj.serial_cg = serial
+        proj.preconditioner = preconditioner
         sim.step(n=40)
-        return np.r_[sim.positions("water"), sim.positions("cube")], list(proj.iterations), list(
-            proj.correction_iterations)
-    x_s, it_s, pc_s = fresh(lambda: run(True))
-    x_p, it_p, pc_p = fresh(lambda: run(False))
+        return (np.r_[sim.positions("water"), sim.positions("cube")], sim.positions("cube").mean(axis=0),
+                list(proj.iterations), list(proj.correction_iterations))
+    x_s, c_s, it_s, pc_s = fresh(lambda: run(True))
+    x_p, c_p, it_p, pc_p = fresh(lambda: run(False))
+    x_j, c_j, it_j, pc_j = fresh(lambda: run(False, "jacobi"))
     moved = float(np.abs(x_s - x_p).max())
+    apart = np.linalg.norm(x_s - x_j, axis=1)
     report(f"projection, serial and parallel CG ({body})", max_position_difference=moved,
-           iterations=(sum(it_s), sum(it_p)), correction_iterations=(sum(pc_s), sum(pc_p)))
+           iterations=(sum(it_s), sum(it_p)), correction_iterations=(sum(pc_s), sum(pc_p)),
+           jacobi_iterations=sum(it_j), jacobi_median_distance=float(np.median(apart)),
+           jacobi_centre_distance=float(np.linalg.norm(c_s - c_j)))
     assert len(it_s) == len(it_p) and max(abs(a - b) for a, b in zip(it_s, it_p)) <= 1
     assert max(abs(a - b) for a, b in zip(pc_s, pc_p)) <= 1
     assert sum(it_s) > 0 and moved < 1e-5
+    assert 2 * sum(it_s) < sum(it_j) < 5 * sum(it_s) and max(it_j) < 400  # (MIC(0)'s cap; Jacobi's is higher)
+    assert np.median(apart) < 2e-4 and np.linalg.norm(c_s - c_j) < 1e-4

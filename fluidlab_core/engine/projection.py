@@ -16,9 +16,11 @@ Per substep (FastSolver.projected_substep):
     classify      node kinds: LIQ (an unknown: liquid fill ≥ ½ of the room the walls and body leave it), AIR
                   (p = 0), WALL (beyond the walls' rows), BSOLID (inside the body, deeper than a cell; moving with it)
     enclose_air   an air pocket the body borders that no path of air joins to the top is liquid (below)
-    solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by MIC(0)-preconditioned CG (float64, warm-started; over a
-                  list of the unknowns, one kernel launch an iteration: each launch costs the host 50-80 µs on the
-                  CPU, as much as an iteration's arithmetic at the tasks' sizes)
+    solve         (A_a + Δx B M⁻¹ Bᵀ) p = −(D u*)/Δt  by preconditioned CG (float64, warm-started; over a list of
+                  the unknowns in lexicographic order). On the CPU MIC(0) and the whole CG in one serial launch (each
+                  launch costs the host 50-80 µs there, as much as an iteration's arithmetic at the tasks' sizes); on
+                  a GPU the diagonal (Jacobi; MIC(0)'s sweeps are serial) and one parallel launch an iteration, its
+                  sums in a fixed order of chunks (`preconditioner`, `serial_cg`; bench/projection_preconditioners.py)
     correct       u = u* − Δt/ρ ∇p on the faces; q = q* + Δt M⁻¹ Q
     G2P           the liquid's particles gather u and C from the faces (a staggered grid), with AFLIP
     position      particles of a packed liquid move down the gradient of a second potential (below)
@@ -132,6 +134,12 @@ POSITION_CORRECTION = 0.5  # the share of the position correction's displacement
 # a 500 kg/m³ cube, over seconds 1-10 (bench/results/buoyancy_3d.txt, 2026-12-05).
 PACKING_BAND = 0.005
 MIC_TAU, MIC_SIGMA = 0.97, 0.25  # MIC(0) (Bridson, "Fluid Simulation for Computer Graphics", 2nd ed., §5.4)
+# The parallel path's sums (a GPU's): each thread sums CHUNK consecutive unknowns of the list, the chunks' sums are
+# added serially, so that the order of every sum is fixed (atomic adds follow the hardware's scheduling)
+CHUNK = 256
+# the CG's iteration cap with the Jacobi preconditioner (the GPU's): it needs 3-4x MIC(0)'s iterations at 16 cells and
+# more as the cell shrinks (tests/test_projection.py measures them)
+MAX_IT_JACOBI = 2000
 
 
 def face_share_func(sdf, dx: float):
@@ -234,6 +242,15 @@ class LiquidProjection:
         # the CG as one serial launch (_solve_serial) on the CPU, one parallel launch an iteration (_iterate) on a GPU,
         # whose threads a serial loop would idle; set before the first substep to choose (read when compiling)
         self.serial_cg = runtime.ensure_init().backend == "cpu"
+        # the preconditioner: MIC(0) (incomplete Cholesky, Bridson §5.4; its two sweeps are serial) with the serial CG
+        # on the CPU, where it needs 3-4x fewer iterations; the diagonal (Jacobi, every node in parallel) on a GPU,
+        # where MIC(0)'s sweeps would run the whole grid on one thread and the listing of the unknowns in one serial
+        # loop (mic0); there they are listed by columns in parallel (_list_unknowns). Set before the first substep
+        # (read when compiling): "mic" or "jacobi".
+        self.preconditioner = "mic" if self.serial_cg else "jacobi"
+        self.part = ti.field(f64, shape=-(-int(np.prod(shape)) // CHUNK))  # the chunks' sums (_ordered_sum)
+        self.part_v = ti.Vector.field(6, f64, shape=-(-int(np.prod(shape)) // CHUNK))  # and of the body's sums
+        self.col_start = ti.Vector.field(2, ti.i32, shape=shape[:2])  # a column's first unknown, and solids' node
         self.disp = ti.Vector.field(3, real, shape=shape)  # the position correction's −∇ψ at liquid nodes (m)
         self.uf = ti.Vector.field(3, real, shape=shape)  # face I + ½e_d's velocity after the solve (m/s)
         self.uf0 = ti.Vector.field(3, real, shape=shape)  # and before gravity and the solve (AFLIP's v⁰)
@@ -905,15 +922,64 @@ class LiquidProjection:
 
     @ti.func
     def _bx_of(self, x: ti.template()):
+        """(bx_f, bx_t) = Σ_I x_I b_I over the unknowns, summed in a fixed order (CHUNK), at a kernel's top level."""
         if ti.static(self.has_soft):
             self._soft_of(x)
         self.bx_f[None] = ti.Vector.zero(ti.f64, 3)
         self.bx_t[None] = ti.Vector.zero(ti.f64, 3)
         if ti.static(self.has_body):  # b_I is the body's: 0 without one
-            for n in range(self.n_unk[None]):  # (listed by mic0)
-                I = self.unk[n]
-                self.bx_f[None] += x[I] * self.bf[I]
-                self.bx_t[None] += x[I] * self.bt[I]
+            n = self.n_unk[None]
+            for c in range((n + CHUNK - 1) // CHUNK):
+                acc = ti.Vector.zero(ti.f64, 6)
+                for m in range(c * CHUNK, ti.min((c + 1) * CHUNK, n)):
+                    I = self.unk[m]
+                    bf, bt = self.bf[I], self.bt[I]
+                    acc += x[I] * ti.Vector([bf[0], bf[1], bf[2], bt[0], bt[1], bt[2]])
+                self.part_v[c] = acc
+            total = ti.Vector.zero(ti.f64, 6)
+            ti.loop_config(serialize=True)
+            for c in range((n + CHUNK - 1) // CHUNK):
+                total += self.part_v[c]
+            self.bx_f[None] = ti.Vector([total[0], total[1], total[2]])
+            self.bx_t[None] = ti.Vector([total[3], total[4], total[5]])
+
+    @ti.func
+    def _ordered_sum(self, term: ti.template(), a):
+        """Σ term(I, a) over the unknowns in the list's order of chunks: each thread sums CHUNK consecutive ones, the
+        chunks' sums are added serially, so the result does not depend on the threads' scheduling (Taichi's
+        parallel reductions and a GPU's atomic adds do). At a kernel's top level; term may write the node's entries."""
+        n = self.n_unk[None]
+        for c in range((n + CHUNK - 1) // CHUNK):
+            acc = ti.f64(0.0)
+            for m in range(c * CHUNK, ti.min((c + 1) * CHUNK, n)):
+                acc += term(self.unk[m], a)
+            self.part[c] = acc
+        total = ti.f64(0.0)
+        ti.loop_config(serialize=True)
+        for c in range((n + CHUNK - 1) // CHUNK):
+            total += self.part[c]
+        return total
+
+    @ti.func
+    def _bb_term(self, I, a):
+        return self.b[I] * self.b[I]
+
+    @ti.func
+    def _rz_term(self, I, a):
+        return self.r[I] * self.z[I]
+
+    @ti.func
+    def _apply_term(self, I, a):
+        """A d at I (the body's sums from _bx_of beforehand); d·A d."""
+        self.Ad[I] = self._A(self.d, I)
+        return self.d[I] * self.Ad[I]
+
+    @ti.func
+    def _advance_term(self, I, alpha):
+        """p += α d, r −= α A d; r·r."""
+        self.p[I] += alpha * self.d[I]
+        self.r[I] -= alpha * self.Ad[I]
+        return self.r[I] * self.r[I]
 
     @ti.func
     def _bx_of_serial(self, x: ti.template()):
@@ -971,42 +1037,33 @@ class LiquidProjection:
                 self.d[I] = 0.0
 
     @ti.kernel
-    def _norm(self, f: ti.template()) -> ti.f64:
-        s = ti.f64(0.0)
-        for I in ti.grouped(f):
-            if self._unknown(I):
-                s += f[I] * f[I]
-        return s
+    def _b_norm2(self) -> ti.f64:
+        """|b|² over the unknowns."""
+        return self._ordered_sum(self._bb_term, 0.0)
 
     @ti.kernel
     def _iterate(self) -> ti.types.vector(2, ti.f64):
-        """One CG iteration in one launch, its loops parallel (a GPU's path; the CPU's is _solve_serial): d = z + β d, A d, α = r·z/(d·A d), p += α d, r −= α A d, z = M⁻¹ r, and β
-        for the next. Returns (r·r, d·A d); with d·A d ≤ 0 (breakdown) α is 0 and p stays. Loops over the unknowns
-        only (d, z are 0 elsewhere, from _start)."""
+        """One CG iteration in one launch, its loops parallel (a GPU's path; the CPU's is _solve_serial): d = z + β d,
+        A d, α = r·z/(d·A d), p += α d, r −= α A d, z = M⁻¹ r, and β for the next. Returns (r·r, d·A d); with
+        d·A d ≤ 0 (breakdown) α is 0 and p stays. Loops over the unknowns only (d, z are 0 elsewhere, from _start);
+        its sums in a fixed order (_ordered_sum)."""
         beta = self.cg_beta[None]
         for n in range(self.n_unk[None]):
             I = self.unk[n]
             self.d[I] = self.z[I] + beta * self.d[I]
         self._bx_of(self.d)
-        pAp = ti.f64(0.0)
-        for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            self.Ad[I] = self._A(self.d, I)
-            pAp += self.d[I] * self.Ad[I]
+        pAp = self._ordered_sum(self._apply_term, 0.0)
         alpha = ti.select(pAp > 0.0, self.cg_rz[None] / ti.max(pAp, 1e-300), 0.0)
-        rr = self._advance(alpha)
-        self._sweeps(True)
-        rz = ti.f64(0.0)
-        for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            rz += self.r[I] * self.z[I]
+        rr = self._ordered_sum(self._advance_term, alpha)
+        self._precondition(True)
+        rz = self._ordered_sum(self._rz_term, 0.0)
         self.cg_beta[None] = ti.select(self.cg_rz[None] > 0.0, rz / ti.max(self.cg_rz[None], 1e-300), 0.0)
         self.cg_rz[None] = rz
         return ti.Vector([rr, pAp])
 
     @ti.func
     def _advance(self, alpha):
-        """p += α d, r −= α A d over the unknowns; returns r·r (both CG paths)."""
+        """p += α d, r −= α A d over the unknowns; returns r·r (the serial path's; _advance_term the parallel's)."""
         rr = ti.f64(0.0)
         for n in range(self.n_unk[None]):
             I = self.unk[n]
@@ -1056,6 +1113,17 @@ class LiquidProjection:
                 self.mic[I] = 1.0 / ti.sqrt(e)
 
     @ti.func
+    def _precondition(self, top: ti.template()):
+        """z = M⁻¹ r over the unknowns: MIC(0)'s sweeps, or the diagonal's (Jacobi, with the body's rank-6 term's
+        diagonal: pdiag). `top`: called at a kernel's top level."""
+        if ti.static(self.preconditioner == "mic"):
+            self._sweeps(top)
+        else:
+            for n in range(self.n_unk[None]):
+                I = self.unk[n]
+                self.z[I] = self.r[I] / self.pdiag[I]
+
+    @ti.func
     def _sweeps(self, top: ti.template()):
         """z = M⁻¹ r by the two sweeps of the MIC(0) factor (serial, in the unknowns' lexicographic order). A
         neighbour that is no unknown counts for nothing: mic is 0 there (mic0), and z is 0 there (_start). `top`:
@@ -1091,11 +1159,7 @@ class LiquidProjection:
         small: 808 unknowns; 0.37-0.48 ms an iteration by _iterate, 0.065 ms here)."""
         self._start_f()
         self._precond_f()
-        bn2 = ti.f64(0.0)
-        for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            bn2 += self.b[I] * self.b[I]
-        self.cg_bn2[None] = bn2
+        self.cg_bn2[None] = self._ordered_sum(self._bb_term, 0.0)
         ti.loop_config(serialize=True)
         for _ in range(1):
             tol2 = tol * tol * self.cg_bn2[None]
@@ -1107,7 +1171,7 @@ class LiquidProjection:
                 done = 1
                 for n in range(self.n_unk[None]):
                     self.p[self.unk[n]] = 0.0
-            while its < MAX_IT and done == 0:
+            while its < ti.static(self.max_iterations()) and done == 0:
                 its += 1
                 for n in range(self.n_unk[None]):
                     I = self.unk[n]
@@ -1125,7 +1189,7 @@ class LiquidProjection:
                     if rr <= tol2:
                         done = 1
                     else:
-                        self._sweeps(False)
+                        self._precondition(False)
                         rz_new = ti.f64(0.0)
                         for n in range(self.n_unk[None]):
                             I = self.unk[n]
@@ -1140,19 +1204,69 @@ class LiquidProjection:
 
     @ti.func
     def _precond_f(self):
-        """z = M⁻¹ r (_sweeps), r·z into cg_rz and β = 0: the CG's first direction is z."""
-        self._sweeps(True)
-        rz = ti.f64(0.0)
-        for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            rz += self.r[I] * self.z[I]
-        self.cg_rz[None] = rz
+        """z = M⁻¹ r (_precondition), r·z into cg_rz and β = 0: the CG's first direction is z."""
+        self._precondition(True)
+        self.cg_rz[None] = self._ordered_sum(self._rz_term, 0.0)
         self.cg_beta[None] = 0.0
 
     @ti.kernel
     def _zero(self):
         for I in ti.grouped(self.kind):
             self.p[I] = 0.0
+
+    def max_iterations(self) -> int:
+        """The CG's iteration cap for the preconditioner chosen."""
+        return MAX_IT if self.preconditioner == "mic" else MAX_IT_JACOBI
+
+    def factor(self):
+        """Once per projection, before both solves: list the unknowns (and the solids' nodes) in lexicographic order,
+        and with MIC(0) its factor (mic0, one serial loop), else by columns in parallel (_list_unknowns)."""
+        if self.preconditioner == "mic":
+            self.mic0()
+        elif self.preconditioner == "jacobi":
+            self._list_unknowns()
+        else:
+            raise ValueError(f"LiquidProjection.preconditioner must be 'mic' or 'jacobi', not {self.preconditioner!r}")
+
+    @ti.kernel
+    def _list_unknowns(self):
+        """unk (and soft_nodes) in lexicographic order, as mic0 lists them, without its serial loop over the grid:
+        each (i, j) column counts its nodes, a serial scan over the columns gives each its first index, and each
+        column writes its own."""
+        nx, ny, nz = ti.static(self.model.grid_shape)
+        for i, j in ti.ndrange(nx, ny):
+            cu, cs = 0, 0
+            for k in range(nz):
+                I = ti.Vector([i, j, k])
+                if self._unknown(I):
+                    cu += 1
+                if ti.static(self.has_soft):
+                    if self.soft_m[I] > 0.0 and self.kind[I] != WALL:
+                        cs += 1
+            self.col_start[i, j] = ti.Vector([cu, cs])
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            tu, ts = 0, 0
+            for i in range(nx):
+                for j in range(ny):
+                    c = self.col_start[i, j]
+                    self.col_start[i, j] = ti.Vector([tu, ts])
+                    tu += c[0]
+                    ts += c[1]
+            self.n_unk[None] = tu
+            if ti.static(self.has_soft):
+                self.n_soft[None] = ts
+        for i, j in ti.ndrange(nx, ny):
+            nu, ns = self.col_start[i, j][0], self.col_start[i, j][1]
+            for k in range(nz):
+                I = ti.Vector([i, j, k])
+                if self._unknown(I):
+                    self.unk[nu] = I
+                    nu += 1
+                if ti.static(self.has_soft):
+                    if self.soft_m[I] > 0.0 and self.kind[I] != WALL:
+                        self.soft_nodes[ns] = I
+                        ns += 1
 
     def solve(self, iterations: list, tol: float = TOL):
         """Preconditioned CG on (A_a + Δx B M⁻¹ Bᵀ) p = b from the p held (warm start) to the relative residual
@@ -1163,10 +1277,10 @@ class LiquidProjection:
             return
         self._start()
         self._precond()
-        bn = np.sqrt(self._norm(self.b))
+        bn = np.sqrt(self._b_norm2())
         it = 0
         if bn > 0:
-            for it in range(1, MAX_IT + 1):
+            for it in range(1, self.max_iterations() + 1):
                 rr, pAp = self._iterate()
                 if pAp <= 0 or np.sqrt(rr) <= tol * bn:
                     break
@@ -1426,7 +1540,7 @@ class LiquidProjection:
         self.classify()
         self.enclose_air()
         self.rhs()
-        self.mic0()
+        self.factor()
         self.solve(self.iterations)
         self.body_impulse(state)
         self.correct(state)
