@@ -137,8 +137,8 @@ MIC_TAU, MIC_SIGMA = 0.97, 0.25  # MIC(0) (Bridson, "Fluid Simulation for Comput
 # The parallel path's sums (a GPU's): each thread sums CHUNK consecutive unknowns of the list, the chunks' sums are
 # added serially, so that the order of every sum is fixed (atomic adds follow the hardware's scheduling)
 CHUNK = 256
-# the CG's iteration cap with the Jacobi preconditioner (the GPU's): it needs 3-4x MIC(0)'s iterations at 16 cells and
-# more as the cell shrinks (tests/test_projection.py measures them)
+# the CG's iteration cap with the Jacobi preconditioner (the GPU's): it needs 3.3-5.4x MIC(0)'s iterations, more as the
+# cell shrinks (55, 71, 86, 122 a solve at 12, 16, 24, 32 cells: bench/results/projection_preconditioners_cpu.txt)
 MAX_IT_JACOBI = 2000
 
 
@@ -243,7 +243,7 @@ class LiquidProjection:
         # whose threads a serial loop would idle; set before the first substep to choose (read when compiling)
         self.serial_cg = runtime.ensure_init().backend == "cpu"
         # the preconditioner: MIC(0) (incomplete Cholesky, Bridson §5.4; its two sweeps are serial) with the serial CG
-        # on the CPU, where it needs 3-4x fewer iterations; the diagonal (Jacobi, every node in parallel) on a GPU,
+        # on the CPU, where it needs 3.3-5.4x fewer iterations; the diagonal (Jacobi, every node in parallel) on a GPU,
         # where MIC(0)'s sweeps would run the whole grid on one thread and the listing of the unknowns in one serial
         # loop (mic0); there they are listed by columns in parallel (_list_unknowns). Set before the first substep
         # (read when compiling): "mic" or "jacobi".
