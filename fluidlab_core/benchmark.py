@@ -629,6 +629,12 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     for name in tasks_:
         task = tasks.make(name, size=size, pressure=pressure)  # refuses an unknown task, size or pressure by name
         budget = int(rollouts) * task.horizon
+        if pressure == "projection":
+            try:  # a scene the projection does not take (no liquid: the ice cream, the air): every method refused
+                task.scene().check_projection()
+            except ValueError as err:
+                refused += [{"task": name, "method": m, "why": str(err)} for m in methods]
+                continue
         if baseline:
             specs.append({"task": name, "method": STILL, "seed": 0, "size": size, "budget": budget, "arch": arch,
                           "threads": threads, "out": str(out.resolve()), "pressure": pressure})

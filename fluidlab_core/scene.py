@@ -588,7 +588,7 @@ class Scene:
         from fluidlab_core import runtime
 
         if self.pressure == "projection":
-            self._check_projection(requires_grad)
+            self.check_projection(requires_grad)
         if requires_grad and self.flip > 0:
             raise ValueError(f"flip={self.flip} (AFLIP) has a forward only: the differentiable solver transfers by "
                              "APIC; build with requires_grad=False, or make the Scene with flip=0 for gradients")
@@ -648,8 +648,9 @@ class Scene:
             sim.attach_gas(gas, GasParticleCoupling(gas, model, rows, self.gas.particle_drag))
         return sim
 
-    def _check_projection(self, requires_grad: bool):
-        """Refuse what pressure="projection" does not handle yet, naming it."""
+    def check_projection(self, requires_grad: bool = False):
+        """Refuse (ValueError) what pressure="projection" does not handle yet, naming it; the build calls it, and a
+        caller may before building (the benchmark refuses such a task before its sweep runs)."""
         why = []
         if requires_grad:
             why.append("gradients (it has a forward solver only; build with requires_grad=False)")

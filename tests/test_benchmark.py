@@ -323,6 +323,15 @@ def test_a_sweep_on_the_projected_liquid_refuses_the_gradient_methods_and_keeps_
     assert benchmark._record({**spec, "pressure": "projection"})["pressure"] == "projection"
     assert "pressure" not in benchmark._record(spec)
 
+    # a task whose scene the projection does not take (no liquid: the ice cream is none to it) is refused whole before
+    # anything runs, with the build's reason, instead of failing in its workers one run at a time
+    logs.clear()
+    records = benchmark.sweep(["IceCreamStatic"], ["cma-es", "ppo"], [0], 150, "small", tmp_path, jobs=1,
+                              use_ray=False, log=logs.append, pressure="projection")
+    assert records == [] and not (tmp_path / "runs.jsonl").exists()
+    refused = [line for line in logs if line.startswith("refused: IceCreamStatic") and "\n" not in line]
+    assert len(refused) == 2 and all("a scene without liquid" in line for line in refused), logs
+
 
 def test_a_folder_with_only_the_still_tools_runs_reports_without_a_figure_of_methods(tmp_path):
     """A sweep whose every method was refused (a budget too small for CMA-ES's 30 generations) still runs the still
