@@ -248,6 +248,9 @@ class LiquidProjection:
         # loop (mic0); there they are listed by columns in parallel (_list_unknowns). Set before the first substep
         # (read when compiling): "mic" or "jacobi".
         self.preconditioner = "mic" if self.serial_cg else "jacobi"
+        # a shell node whose faces are open by less than this is the body's (OPEN_MIN; the benches that study the rule
+        # set it per run before the first substep: read when compiling)
+        self.open_min = OPEN_MIN
         self.part = ti.field(f64, shape=-(-int(np.prod(shape)) // CHUNK))  # the chunks' sums (_ordered_sum)
         self.part_v = ti.Vector.field(6, f64, shape=-(-int(np.prod(shape)) // CHUNK))  # and of the body's sums
         self.col_start = ti.Vector.field(2, ti.i32, shape=shape[:2])  # a column's first unknown, and solids' node
@@ -686,7 +689,7 @@ class LiquidProjection:
                         J = I + sgn * ti.Vector.unit(3, d, ti.i32)
                         if self._inside(J):
                             open_share += 1.0 - self._solid(I, J)
-                if open_share < OPEN_MIN:
+                if open_share < ti.static(self.open_min):
                     k = ENC_SHELL
                 self.kind[I] = ti.cast(k, ti.i8)
         for I in ti.grouped(self.kind):
