@@ -45,6 +45,15 @@ def test_cma_es_is_reproducible_and_records_its_run():
     meta = runs[0].metadata
     assert meta["final_loss"] == pytest.approx(min(runs[0].loss_history), rel=1e-9)
     assert meta["steps_used"] == 3 * task.horizon and runs[0].method == "cma-es" and runs[0].seed == 7
+    # over the paper's periodic stroke the paddle returns to where it began every period (20 steps; the horizon is
+    # five of them); cma-es-free spreads its knots over the whole horizon, and the paddle may end anywhere
+    assert meta["settings"]["parametrisation"].startswith("periodic")
+    free = optim.optimise(task, "cma-es-free", budget=task.horizon, seed=8)
+    assert free.method == "cma-es-free"
+    assert free.metadata["settings"]["parametrisation"] == "8 knots per axis, piecewise linear"
+    span = float(np.abs(runs[0].twists).max())
+    assert np.abs(runs[0].twists.sum(axis=0)).max() < 1e-6 * span * task.horizon
+    assert np.abs(free.twists.sum(axis=0)).max() > 0.01 * float(np.abs(free.twists).max()) * task.horizon
 
 
 def test_bad_requests_are_refused():

@@ -5,7 +5,9 @@ within fluid bodies; optim/dp.py), "dp-h" (the same loop without them), "cma-es"
 model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py), and "pods"
 (a policy network improved with the simulator's gradients; optim/pods.py), the paper's six (PAPER_METHODS); sac,
 ppo and pods need the `rl` extra (torch). And one of our own, "dp-window": DP over short windows of the horizon
-for tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is a mean over steps). Every method
+for tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is a mean over steps), and
+"cma-es-free": CMA-ES over knots spread over the whole horizon where a task has the paper's periodic stroke
+(Gathering), which held CMA-ES back on the projected liquid (docs/benchmark.md). Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
   floating-point sums in multithreaded CPU kernels),
@@ -23,7 +25,7 @@ import numpy as np
 from fluidlab_core.optim.progress import Progress, Result
 
 PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
-METHODS = (*PAPER_METHODS, "dp-window")
+METHODS = (*PAPER_METHODS, "dp-window", "cma-es-free")
 RESUMABLE = ("dp", "dp-h")  # methods that can continue from a saved state (DP with techniques off too)
 GRADIENT_METHODS = ("dp", "dp-h", "pods", "dp-window")  # methods that need the differentiable simulator
 DESCRIPTIONS = {
@@ -36,6 +38,8 @@ DESCRIPTIONS = {
     "ppo": "Proximal Policy Optimisation (Stable-Baselines3) on the Gymnasium environment, reward c1 - c2 * step loss",
     "pods": "PODS (Mora et al. 2021): a policy network fitted to actions improved by the simulator's gradient, "
             "two rollouts per iteration",
+    "cma-es-free": "CMA-ES over knots spread over the whole horizon where the task has the paper's periodic stroke "
+                   "(Gathering): the tool may end anywhere, as the RL policies' may; the same as cma-es elsewhere",
     "dp-window": "gradient descent over short windows of the horizon in turn (each from the state the current "
                  "actions reach, its gradient truncated there), for long horizons whose whole gradient explodes; "
                  "tasks whose loss is a mean over steps (AirCirculation, Gathering, Transporting)",
@@ -89,9 +93,9 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         result = pods.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
     elif method in rl.RL_METHODS:
         result = rl.run(task, method, int(budget), int(seed), callback, max_iterations=max_iterations)
-    elif method == "cma-es":
+    elif method in ("cma-es", "cma-es-free"):
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
-                           min_generations=min_generations)
+                           min_generations=min_generations, method=method, free=method == "cma-es-free")
     else:
         opts = (dp.DPOptions(**{w: False for w in without}) if method == "dp" else
                 dp.DPOptions.windowed(task) if method == "dp-window" else dp.DPOptions.plain())

@@ -30,7 +30,8 @@ def default_population(n: int) -> int:
 
 
 def search_size(task, n_knots: int = 8) -> int:
-    """The number of parameters CMA-ES searches for `task` (the knots parametrisation above)."""
+    """The number of parameters CMA-ES searches for `task` (the knots parametrisation above; the same over free
+    knots)."""
     return P.knots(task, n_knots).size
 
 
@@ -48,14 +49,15 @@ def population_for(task, budget: int, min_generations: int, n_knots: int = 8) ->
 
 
 def run(task, budget: int, seed: int, callback=None, n_knots: int = 8, sigma0: float = 0.3,
-        max_iterations: int | None = None, method: str = "cma-es", min_generations: int | None = None) -> Result:
+        max_iterations: int | None = None, method: str = "cma-es", min_generations: int | None = None,
+        free: bool = False) -> Result:
     import warnings
 
     with warnings.catch_warnings():  # cma warns that matplotlib (for its plots) is missing
         warnings.simplefilter("ignore")
         import cma
 
-    par = P.knots(task, n_knots)
+    par = P.knots(task, n_knots, free=free)
     lo, hi = par.bounds()
     span = np.where(hi > lo, hi - lo, 1.0)
 

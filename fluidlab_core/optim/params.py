@@ -114,9 +114,10 @@ def periodic(task) -> Parametrisation:
                            f"periodic (stroke {stroke} + return {reset} steps)")
 
 
-def knots(task, n_knots: int = 8) -> Parametrisation:
-    """Low-dimensional: n_knots per axis over the horizon, or over the stroke of a periodic task."""
-    if task.periodic:
+def knots(task, n_knots: int = 8, free: bool = False) -> Parametrisation:
+    """Low-dimensional: n_knots per axis over the horizon, or over the stroke of a periodic task (`free`: over the
+    whole horizon all the same, so that the tool may end anywhere)."""
+    if task.periodic and not free:
         stroke, reset = task.periodic
         m = _periodic_matrix(task.horizon, stroke, reset) @ _knot_matrix(stroke, min(n_knots, stroke))
         name = f"periodic, {min(n_knots, stroke)} knots per axis over the stroke"
