@@ -12,9 +12,11 @@ floating bodies), on the projection it floats. For each task, liquid and traject
 - still: the paddle held still;
 - dp (state): the shipped trajectory, trajectories/<task>/<task>_dp_seed0_<size>.json, optimised by DP on the default;
 - cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default (bench/results/benchmark_<size>/);
-- cma-es (projection): its CMA-ES seed 0 on the projection (bench/results/benchmark_<size>_projection/, from
-  `python -m fluidlab_core.benchmark --pressure projection --methods cma-es`).
-A trajectory whose file is missing is skipped. Appends its table to the output file.
+- cma-es, cma-es-free, ppo, sac (projection): their seed 0 on the projection (bench/results/benchmark_<size>_projection/,
+  from `python -m fluidlab_core.benchmark --pressure projection --methods cma-es cma-es-free ppo sac`).
+A trajectory whose file is missing is skipped. Beside each: the paddle's net displacement over the horizon and the
+farthest it goes from its start (m), from its twists: the periodic stroke returns it to its start every period.
+Appends its table to the output file.
 """
 from __future__ import annotations
 
@@ -35,9 +37,10 @@ def trajectories(task: str, size: str) -> dict:
         "dp (state)": ROOT / "trajectories" / task / f"{task}_dp_seed0_{size}.json",
         "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}" / "trajectories" / task
         / f"{task}_cma-es_seed0_{size}.json",
-        "cma-es (projection)": ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories" / task
-        / f"{task}_cma-es_seed0_{size}_projection.json",
     }
+    for method in ("cma-es", "cma-es-free", "ppo", "sac"):
+        paths[f"{method} (projection)"] = (ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories"
+                                           / task / f"{task}_{method}_seed0_{size}_projection.json")
     return {k: p for k, p in paths.items() if p.is_file()}
 
 
@@ -60,6 +63,8 @@ def split(task, sim, actions, position) -> dict:
     out = {"horizontal": float(np.mean(horizontal)), "vertical": float(np.mean(vertical))}
     out["sum"] = out["horizontal"] + out["vertical"]
     out["loss"] = float(task.evaluate(actions, position, sim=sim, rewards=False)["loss"])
+    path = np.cumsum(np.asarray(twists)[:, :3], axis=0) * task.dt  # the paddle's displacement from its start (m)
+    out["net"], out["reach"] = float(np.linalg.norm(path[-1])), float(np.linalg.norm(path, axis=1).max())
     return out
 
 
@@ -77,7 +82,8 @@ def main(argv=None):
     out = Path(args.out or ROOT / "bench" / "results" / f"gathering_loss_split_{args.size}.txt")
     lines = [f"# bench/gathering_loss_split.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32",
              "# task | liquid | trajectory | loss (m²) = horizontal + vertical | its gain on the still tool's loss: "
-             "total, horizontal, vertical (share of the still loss) | task.evaluate's loss (check)"]
+             "total, horizontal, vertical (share of the still loss) | task.evaluate's loss (check) | the paddle's net "
+             "displacement and farthest reach from its start (m)"]
     print("\n".join(lines), flush=True)
     for name in args.tasks:
         for pressure in ("state", "projection"):
@@ -91,7 +97,7 @@ def main(argv=None):
             for label, r in rows:
                 gain = [(still[k] - r[k]) / still["sum"] for k in ("sum", "horizontal", "vertical")]
                 line = (f"{name} | {pressure} | {label} | {r['sum']:.4e} = {r['horizontal']:.4e} + {r['vertical']:.4e} | "
-                        f"{gain[0]:+.3f}, {gain[1]:+.3f}, {gain[2]:+.3f} | {r['loss']:.4e}")
+                        f"{gain[0]:+.3f}, {gain[1]:+.3f}, {gain[2]:+.3f} | {r['loss']:.4e} | {r['net']:.4f}, {r['reach']:.4f}")
                 lines.append(line)
                 print(line, flush=True)
             fl.runtime.reset()  # the next build starts its fields' ids from zero (its kernels from the cache)
