@@ -11,7 +11,8 @@ it sinks. On the default liquid the foam sinks (0.91 of its volume under the sur
 floating bodies), on the projection it floats. For each task, liquid and trajectory, one rollout, and the two parts:
 - still: the paddle held still;
 - dp (state): the shipped trajectory, trajectories/<task>/<task>_dp_seed0_<size>.json, optimised by DP on the default;
-- cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default (bench/results/benchmark_<size>/);
+- cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default, on the fixed statics
+  (bench/results/benchmark_<size>_statics/);
 - cma-es, cma-es-free, ppo, sac (projection): their seed 0 on the projection (bench/results/benchmark_<size>_projection/,
   from `python -m fluidlab_core.benchmark --pressure projection --methods cma-es cma-es-free ppo sac`).
 A trajectory whose file is missing is skipped. Beside each: the paddle's net displacement over the horizon and the
@@ -35,7 +36,7 @@ def trajectories(task: str, size: str) -> dict:
     """{label: path} of the trajectories compared (those whose file exists)."""
     paths = {
         "dp (state)": ROOT / "trajectories" / task / f"{task}_dp_seed0_{size}.json",
-        "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}" / "trajectories" / task
+        "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
         / f"{task}_cma-es_seed0_{size}.json",
     }
     for method in ("cma-es", "cma-es-free", "ppo", "sac"):
