@@ -71,7 +71,6 @@ import numpy as np
 ABLATIONS = {"dp-no-sharing": ("gradient_sharing",), "dp-no-attraction": ("attraction",),
              "dp-neither": ("gradient_sharing", "attraction"), "dp-no-soft": ("soft_contact",),
              "dp-no-expanding": ("expanding_region",)}
-CMA_ES = ("cma-es", "cma-es-free")  # CMA-ES over the task's parametrisation, and over free knots
 STILL = "still"  # not an optimiser: the tool kept still (zero twists), the loss every method should beat
 FLAT_WINDOW = 0.2  # the last share of the budget a flattened curve improves by less than FLAT_TOLERANCE
 FLAT_TOLERANCE = 0.01
@@ -213,8 +212,9 @@ def run_job(spec: dict) -> dict:
 
         method, without = (("dp", ABLATIONS[spec["method"]]) if spec["method"] in ABLATIONS
                            else (spec["method"], ()))
+        cma = method in optim.CMA_ES_METHODS
         traj = optim.optimise(task, method, budget, seed=int(spec["seed"]), callback=callback, without=without,
-                              min_generations=spec.get("min_generations") if method in CMA_ES else None,
+                              min_generations=spec.get("min_generations") if cma else None,
                               resume=resume)
         wall = time.perf_counter() - t0 - spent["eval"]
         final = float(traj.metadata["final_loss"])
@@ -652,7 +652,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
                 except ValueError as err:
                     refused.append({"task": name, "method": m, "why": str(err)})
                     continue
-            if m in CMA_ES:
+            if m in optim.CMA_ES_METHODS:
                 try:
                     cmaes.population_for(task, budget, min_generations)
                 except ValueError as err:
@@ -668,7 +668,7 @@ def sweep(tasks_: list[str], methods: list[str], seeds: list[int], rollouts: int
     previous = {r["key"]: r for r in load_runs(runs_path) if "final_loss" in r}
     todo = [s for s in specs if run_key(s) not in previous]
     # task by task (an interrupted sweep has whole tasks), gradient runs first within a task: they take longest
-    todo.sort(key=lambda s: (tasks_.index(s["task"]), s["method"] in (*CMA_ES, STILL)))
+    todo.sort(key=lambda s: (tasks_.index(s["task"]), s["method"] in (*optim.CMA_ES_METHODS, STILL)))
     log(f"{len(specs)} runs in the sweep, {len(specs) - len(todo)} already in {runs_path}, {len(todo)} to run "
         f"({'Ray at ' + ray_address if ray_address else ('local Ray' if use_ray else 'process pool')}, {jobs} at a "
         f"time, {threads} Taichi thread(s) each)")

@@ -26,6 +26,7 @@ from fluidlab_core.optim.progress import Progress, Result
 
 PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
 METHODS = (*PAPER_METHODS, "dp-window", "cma-es-free")
+CMA_ES_METHODS = ("cma-es", "cma-es-free")  # CMA-ES over the task's parametrisation, and over free knots
 RESUMABLE = ("dp", "dp-h")  # methods that can continue from a saved state (DP with techniques off too)
 GRADIENT_METHODS = ("dp", "dp-h", "pods", "dp-window")  # methods that need the differentiable simulator
 DESCRIPTIONS = {
@@ -93,7 +94,7 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
         result = pods.run(task, int(budget), int(seed), callback, max_iterations=max_iterations)
     elif method in rl.RL_METHODS:
         result = rl.run(task, method, int(budget), int(seed), callback, max_iterations=max_iterations)
-    elif method in ("cma-es", "cma-es-free"):
+    elif method in CMA_ES_METHODS:
         result = cmaes.run(task, int(budget), int(seed), callback, max_iterations=max_iterations,
                            min_generations=min_generations, method=method, free=method == "cma-es-free")
     else:
@@ -111,4 +112,4 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            loss_history=result.history, metadata=meta)
 
 
-__all__ = ["optimise", "check_request", "METHODS", "PAPER_METHODS", "RESUMABLE", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]
+__all__ = ["optimise", "check_request", "METHODS", "CMA_ES_METHODS", "PAPER_METHODS", "RESUMABLE", "TECHNIQUES", "DESCRIPTIONS", "Progress", "Result"]
