@@ -931,37 +931,38 @@ class LiquidProjection:
         self.bx_f[None] = ti.Vector.zero(ti.f64, 3)
         self.bx_t[None] = ti.Vector.zero(ti.f64, 3)
         if ti.static(self.has_body):  # b_I is the body's: 0 without one
-            n = self.n_unk[None]
-            for c in range((n + CHUNK - 1) // CHUNK):
-                acc = ti.Vector.zero(ti.f64, 6)
-                for m in range(c * CHUNK, ti.min((c + 1) * CHUNK, n)):
-                    I = self.unk[m]
-                    bf, bt = self.bf[I], self.bt[I]
-                    acc += x[I] * ti.Vector([bf[0], bf[1], bf[2], bt[0], bt[1], bt[2]])
-                self.part_v[c] = acc
-            total = ti.Vector.zero(ti.f64, 6)
-            ti.loop_config(serialize=True)
-            for c in range((n + CHUNK - 1) // CHUNK):
-                total += self.part_v[c]
+            total = self._ordered_sum(self._bx_term, x, self.part_v, ti.Vector.zero(ti.f64, 6))
             self.bx_f[None] = ti.Vector([total[0], total[1], total[2]])
             self.bx_t[None] = ti.Vector([total[3], total[4], total[5]])
 
     @ti.func
-    def _ordered_sum(self, term: ti.template(), a):
-        """Σ term(I, a) over the unknowns in the list's order of chunks: each thread sums CHUNK consecutive ones, the
-        chunks' sums are added serially, so the result does not depend on the threads' scheduling (Taichi's
-        parallel reductions and a GPU's atomic adds do). At a kernel's top level; term may write the node's entries."""
+    def _ordered_sum(self, term: ti.template(), a: ti.template(), part: ti.template(), zero: ti.template()):
+        """Σ term(I, a) over the unknowns in the list's order of chunks: each thread sums CHUNK consecutive ones into
+        part[c], the chunks' sums are added serially, so the result does not depend on the threads' scheduling
+        (Taichi's parallel reductions and a GPU's atomic adds do). zero is the sum's zero (a scalar or a vector, of
+        part's type). At a kernel's top level; term may write the node's entries."""
         n = self.n_unk[None]
         for c in range((n + CHUNK - 1) // CHUNK):
-            acc = ti.f64(0.0)
+            acc = zero
             for m in range(c * CHUNK, ti.min((c + 1) * CHUNK, n)):
                 acc += term(self.unk[m], a)
-            self.part[c] = acc
-        total = ti.f64(0.0)
+            part[c] = acc
+        total = zero
         ti.loop_config(serialize=True)
         for c in range((n + CHUNK - 1) // CHUNK):
-            total += self.part[c]
+            total += part[c]
         return total
+
+    @ti.func
+    def _sum(self, term: ti.template(), a: ti.template()):
+        """_ordered_sum of a scalar term."""
+        return self._ordered_sum(term, a, self.part, ti.f64(0.0))
+
+    @ti.func
+    def _bx_term(self, I, x: ti.template()):
+        """x_I b_I, the body's force and torque parts as one 6-vector."""
+        bf, bt = self.bf[I], self.bt[I]
+        return x[I] * ti.Vector([bf[0], bf[1], bf[2], bt[0], bt[1], bt[2]])
 
     @ti.func
     def _bb_term(self, I, a):
@@ -1042,7 +1043,7 @@ class LiquidProjection:
     @ti.kernel
     def _b_norm2(self) -> ti.f64:
         """|b|² over the unknowns."""
-        return self._ordered_sum(self._bb_term, 0.0)
+        return self._sum(self._bb_term, 0.0)
 
     @ti.kernel
     def _iterate(self) -> ti.types.vector(2, ti.f64):
@@ -1055,24 +1056,22 @@ class LiquidProjection:
             I = self.unk[n]
             self.d[I] = self.z[I] + beta * self.d[I]
         self._bx_of(self.d)
-        pAp = self._ordered_sum(self._apply_term, 0.0)
+        pAp = self._sum(self._apply_term, 0.0)
         alpha = ti.select(pAp > 0.0, self.cg_rz[None] / ti.max(pAp, 1e-300), 0.0)
-        rr = self._ordered_sum(self._advance_term, alpha)
+        rr = self._sum(self._advance_term, alpha)
         self._precondition(True)
-        rz = self._ordered_sum(self._rz_term, 0.0)
+        rz = self._sum(self._rz_term, 0.0)
         self.cg_beta[None] = ti.select(self.cg_rz[None] > 0.0, rz / ti.max(self.cg_rz[None], 1e-300), 0.0)
         self.cg_rz[None] = rz
         return ti.Vector([rr, pAp])
 
     @ti.func
     def _advance(self, alpha):
-        """p += α d, r −= α A d over the unknowns; returns r·r (the serial path's; _advance_term the parallel's)."""
+        """p += α d, r −= α A d over the unknowns in the list's order; returns r·r (the serial path's; the parallel
+        path sums the same _advance_term in chunks)."""
         rr = ti.f64(0.0)
         for n in range(self.n_unk[None]):
-            I = self.unk[n]
-            self.p[I] += alpha * self.d[I]
-            self.r[I] -= alpha * self.Ad[I]
-            rr += self.r[I] * self.r[I]
+            rr += self._advance_term(self.unk[n], alpha)
         return rr
 
     @ti.func
@@ -1162,7 +1161,7 @@ class LiquidProjection:
         small: 808 unknowns; 0.37-0.48 ms an iteration by _iterate, 0.065 ms here)."""
         self._start_f()
         self._precond_f()
-        self.cg_bn2[None] = self._ordered_sum(self._bb_term, 0.0)
+        self.cg_bn2[None] = self._sum(self._bb_term, 0.0)
         ti.loop_config(serialize=True)
         for _ in range(1):
             tol2 = tol * tol * self.cg_bn2[None]
@@ -1209,7 +1208,7 @@ class LiquidProjection:
     def _precond_f(self):
         """z = M⁻¹ r (_precondition), r·z into cg_rz and β = 0: the CG's first direction is z."""
         self._precondition(True)
-        self.cg_rz[None] = self._ordered_sum(self._rz_term, 0.0)
+        self.cg_rz[None] = self._sum(self._rz_term, 0.0)
         self.cg_beta[None] = 0.0
 
     @ti.kernel
