@@ -10,7 +10,11 @@ gathering means, and a vertical part, z, which is zero for an object floating at
 it sinks. On the default liquid the foam sinks (0.91 of its volume under the surface in its first second; README,
 floating bodies), on the projection it floats. For each task, liquid and trajectory, one rollout, and the two parts:
 - still: the paddle held still;
-- dp (state): the shipped trajectory, trajectories/<task>/<task>_dp_seed0_<size>.json, optimised by DP on the default;
+- dp (state): DP seed 0 on the default (bench/results/benchmark_<size>/, the 2026-11-27 sweep; shipped until
+  2026-12-06);
+- cma-es-free (state): the shipped trajectory, CMA-ES over free knots on the default, on the fixed statics
+  (trajectories/<task>/<task>_cma-es-free_seed<k>_<size>.json, the best seed of
+  bench/results/benchmark_<size>_statics/);
 - cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default, on the fixed statics
   (bench/results/benchmark_<size>_statics/);
 - cma-es, cma-es-free, ppo, sac (projection): their seed 0 on the projection (bench/results/benchmark_<size>_projection/,
@@ -35,10 +39,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def trajectories(task: str, size: str) -> dict:
     """{label: path} of the trajectories compared (those whose file exists)."""
     paths = {
-        "dp (state)": ROOT / "trajectories" / task / f"{task}_dp_seed0_{size}.json",
+        "dp (state)": ROOT / "bench" / "results" / f"benchmark_{size}" / "trajectories" / task
+        / f"{task}_dp_seed0_{size}.json",
         "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
         / f"{task}_cma-es_seed0_{size}.json",
     }
+    shipped = sorted((ROOT / "trajectories" / task).glob(f"{task}_cma-es-free_seed*_{size}.json"))
+    if shipped:
+        paths["cma-es-free (state)"] = shipped[0]
     for method in ("cma-es", "cma-es-free", "ppo", "sac"):
         paths[f"{method} (projection)"] = (ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories"
                                            / task / f"{task}_{method}_seed0_{size}_projection.json")
