@@ -212,10 +212,8 @@ def run_job(spec: dict) -> dict:
 
         method, without = (("dp", ABLATIONS[spec["method"]]) if spec["method"] in ABLATIONS
                            else (spec["method"], ()))
-        cma = method in optim.CMA_ES_METHODS
         traj = optim.optimise(task, method, budget, seed=int(spec["seed"]), callback=callback, without=without,
-                              min_generations=spec.get("min_generations") if cma else None,
-                              resume=resume)
+                              min_generations=spec.get("min_generations"), resume=resume)  # (CMA-ES's only)
         wall = time.perf_counter() - t0 - spent["eval"]
         final = float(traj.metadata["final_loss"])
         if not curve or curve[-1][0] < traj.metadata["steps_used"]:
