@@ -146,6 +146,14 @@ class GasSolver:
             self.Vnhi = [ti.field(real, shape=self.face_shapes[d], needs_grad=g) for d in range(3)]
             self.Qnlo = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
             self.Qnhi = ti.field(real, shape=(self.n_q, nx, ny, nz), needs_grad=g)
+        # with gradients, the advection's backtrace goes through fields of its own, so that Taichi differentiates
+        # three short kernels rather than one long one (advect_sl): each face's and cell's midpoint m and traced
+        # point x (m)
+        if g:
+            self.trace_mid = [ti.Vector.field(3, real, shape=self.face_shapes[d], needs_grad=g)
+                              for d in range(3)] + [ti.Vector.field(3, real, shape=self.shape, needs_grad=g)]
+            self.trace_x = [ti.Vector.field(3, real, shape=self.face_shapes[d], needs_grad=g)
+                            for d in range(3)] + [ti.Vector.field(3, real, shape=self.shape, needs_grad=g)]
         # (velocity lo, velocity hi, scalar lo, scalar hi) of every clamp-range set, for zeroing their gradients
         self._range_fields = [(self.Vlo, self.Vhi, self.Qlo, self.Qhi)] + \
             ([(self.Vnlo, self.Vnhi, self.Qnlo, self.Qnhi)] if self.continuous else [])
@@ -390,7 +398,7 @@ class GasSolver:
 
     @ti.func
     def _backtrace(self, st: ti.template(), x, dt):
-        """RK2 (midpoint) backtrace of x over dt in the velocity of stage st."""
+        """RK2 (midpoint) backtrace of x over dt in the velocity of stage st (advect_sl without gradients)."""
         mid = x - 0.5 * dt * self._velocity_at(st, x)
         return x - dt * self._velocity_at(st, mid)
 
@@ -845,21 +853,70 @@ class GasSolver:
         """dst = src at the backtraced points (one semi-Lagrangian pass over dt in the velocity of stage vel; dt < 0
         traces forward). With `keep`, each point's clamp range for MacCormack goes to Vlo/Vhi, Qlo/Qhi: the range of
         the 8 values it interpolated, or with the continuous limiter the interpolated φ⁻, φ⁺ (local_range).
-        A kernel per face axis and one for the cells: Taichi's compile time grows faster than a kernel's length,
-        most of all for reverse-mode kernels (mostly in Taichi's store-to-load forwarding pass). Measured on
-        this project's 2-core machine (12³ plume, float32, empty cache, the `keep` instance): its reverse mode
-        compiled in 87 s as one kernel, 74 s with value-only velocity samples (_interp_value), 43.5 s split."""
-        self._faces_and_cells(self._advect_faces, self._advect_cells, False, src, vel, dst, dt, keep)
+        A kernel per face axis and one for the cells, Δt a kernel argument (one instance for both MacCormack
+        passes). With gradients the RK2 backtrace x* = x − Δt u(x − ½Δt u(x)) goes through fields: _trace_mid
+        writes each sample's midpoint, _trace_x its traced point, and _advect_faces/_advect_cells interpolate
+        there. Taichi's compile time grows faster than a kernel's length, most of all for reverse-mode kernels
+        (mostly in its store-to-load forwarding pass), so three short kernels differentiate in about a third of
+        the time of one long one (docs/gas.md, Speed; bench/gas_compile.py). Without gradients the backtrace stays
+        inline: the fields would cost six vectors a cell."""
+        for d in range(4):
+            if self.needs_grad:
+                self._trace_mid(d, vel, dt)
+                self._trace_x(d, vel, dt)
+            if d < 3:
+                self._advect_faces(d, src, vel, dst, dt, keep)
+            else:
+                self._advect_cells(src, vel, dst, dt, keep)
 
-    def advect_sl_grad(self, src: int, vel: int, dst: int, dt: float, keep: bool):
-        """The adjoint of advect_sl."""
-        self._faces_and_cells(self._advect_faces, self._advect_cells, True, src, vel, dst, dt, keep)
+    def advect_sl_grad(self, src: int, vel: int, dst: int, dt: float, keep: bool, retrace: bool = True):
+        """The adjoint of advect_sl: for the cells, then each face axis backwards, the reverse modes of the three
+        kernels, with the backtrace run again first unless `retrace` is False (the fields still hold this pass's
+        points: it was the last advect_sl run)."""
+        for d in (3, 2, 1, 0):
+            if retrace:
+                self._trace_mid(d, vel, dt)
+                self._trace_x(d, vel, dt)
+            if d < 3:
+                self._advect_faces.grad(d, src, vel, dst, dt, keep)
+            else:
+                self._advect_cells.grad(src, vel, dst, dt, keep)
+            self._trace_x.grad(d, vel, dt)
+            self._trace_mid.grad(d, vel, dt)
+
+    @ti.func
+    def _sample_position(self, d: ti.template(), I):
+        """World position of sample I: face I of axis d (d < 3) or cell I (d = 3)."""
+        p = ti.Vector([0.0, 0.0, 0.0], dt=self.real)
+        if ti.static(d < 3):
+            p = self._face_pos(d, I)
+        else:
+            p = self._cell_pos(I)
+        return p
 
     @ti.kernel
-    def _advect_faces(self, d: ti.template(), src: ti.template(), vel: ti.template(), dst: ti.template(),
-                      dt: ti.template(), keep: ti.template()):
+    def _trace_mid(self, d: ti.template(), vel: ti.template(), dt: float):
+        """m = p − ½Δt u(p) at each face of axis d (d = 3: each cell): the RK2 backtrace's midpoint."""
+        for I in ti.grouped(self.trace_mid[d]):
+            p = self._sample_position(d, I)
+            self.trace_mid[d][I] = p - 0.5 * dt * self._velocity_at(vel, p)
+
+    @ti.kernel
+    def _trace_x(self, d: ti.template(), vel: ti.template(), dt: float):
+        """x = p − Δt u(m): the traced point."""
+        for I in ti.grouped(self.trace_x[d]):
+            p = self._sample_position(d, I)
+            self.trace_x[d][I] = p - dt * self._velocity_at(vel, self.trace_mid[d][I])
+
+    @ti.kernel
+    def _advect_faces(self, d: ti.template(), src: ti.template(), vel: ti.template(), dst: ti.template(), dt: float,
+                      keep: ti.template()):
         for I in ti.grouped(self.V[dst][d]):
-            x = self._backtrace(vel, self._face_pos(d, I), dt)
+            x = self._face_pos(d, I)
+            if ti.static(self.needs_grad):
+                x = self.trace_x[d][I]
+            else:
+                x = self._backtrace(vel, x, dt)
             o = [0.5, 0.5, 0.5]
             o[d] = 0.0
             value, lo, hi = self._interp(self.V[src][d], x, o[0], o[1], o[2], -1)
@@ -871,10 +928,14 @@ class GasSolver:
                 self.Vhi[d][I] = hi
 
     @ti.kernel
-    def _advect_cells(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: ti.template(),
+    def _advect_cells(self, src: ti.template(), vel: ti.template(), dst: ti.template(), dt: float,
                       keep: ti.template()):
         for I in ti.grouped(self.solid):
-            x = self._backtrace(vel, self._cell_pos(I), dt)
+            x = self._cell_pos(I)
+            if ti.static(self.needs_grad):
+                x = self.trace_x[3][I]
+            else:
+                x = self._backtrace(vel, x, dt)
             for c in ti.static(range(self.n_q)):
                 value, lo, hi = self._interp(self.Q[src], x, 0.5, 0.5, 0.5, c)
                 self.Q[dst][c, I[0], I[1], I[2]] = value
@@ -1259,6 +1320,11 @@ class GasSolver:
         for st in ti.static(range(N_Q_STAGES)):
             for I in ti.grouped(self.Q[st]):
                 self.Q[st].grad[I] = 0.0
+        if ti.static(self.needs_grad):
+            for d in ti.static(range(4)):
+                for I in ti.grouped(self.trace_x[d]):
+                    self.trace_mid[d].grad[I] = ti.Vector.zero(self.real, 3)
+                    self.trace_x[d].grad[I] = ti.Vector.zero(self.real, 3)
         for vlo, vhi, qlo, qhi in ti.static(self._range_fields):
             for d in ti.static(range(3)):
                 for I in ti.grouped(vlo[d]):
@@ -1364,12 +1430,12 @@ class GasSolver:
             self.curl.grad(S2)
         if self.spec.advection == "maccormack":
             self.maccormack.grad(S1, HAT, TLD, S2)
-            self.advect_sl_grad(HAT, S1, TLD, -dt, False)
+            self.advect_sl_grad(HAT, S1, TLD, -dt, False, retrace=False)  # forward_stages' last pass
             self.advect_sl_grad(S1, S1, HAT, dt, True)
             if self.continuous:
                 self.local_range_grad(S1)
         else:
-            self.advect_sl_grad(S1, S1, S2, dt, False)
+            self.advect_sl_grad(S1, S1, S2, dt, False, retrace=False)
         self.sources_stage.grad(S0, S1, dt)
         if particles_grad is not None and not self.frac_particles:
             # every stage that reads solid_v (sources, override) is behind us, and boundaries.grad (which takes
