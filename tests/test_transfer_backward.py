@@ -1,10 +1,13 @@
-"""The hand-written backwards against Taichi's autodiff of the same forward functions, on random inputs, float64.
+"""The hand-written backwards of P2G's scatter, G2P's gather and the SVD against central finite differences of
+the same forward functions, on random inputs, float64.
 
 engine/transfer.py differentiates P2G's scatter and G2P's gather by hand (Taichi's reverse of them is slow, and
-its reverse of the per-thread-copy scatter does not exist). Each backward is checked here against Taichi's
-reverse mode of the forward function it differentiates, written with atomic scatters so that autodiff applies:
-every gradient must agree to 1e-10 relative. The SVD's backward (engine/svd.py), which Taichi cannot derive
-(ti.svd iterates), is checked against central finite differences instead.
+its reverse of the per-thread-copy scatter does not exist). Each backward is checked here against central
+differences of the forward function it differentiates, in several random directions per input: within 1e-7
+relative. These tests used Taichi's reverse mode of the same forward kernels as the reference, which agreed to
+1e-10 but took 202 s of the suite's time to compile (the scatter's reverse alone 153 s; 2026-12-06, a cold
+cache); the differences compile only the forward kernels. The SVD's backward (engine/svd.py), which Taichi
+cannot derive (ti.svd iterates), is checked the same way.
 """
 import numpy as np
 import pytest
@@ -18,7 +21,7 @@ from fluidlab_core.engine import transfer
 from tests.conftest import report
 
 N = 40  # random particles
-TOL = 1e-10
+TOL = 1e-7  # relative, on directional derivatives (measured 2026-12-06: x 2e-9, the others 1e-11 or less)
 backward_svd = svd3.make_backward_svd(1e-10)
 
 
@@ -31,30 +34,55 @@ def model():
     conftest.init("f32")
 
 
-def _fields(model, rng):
-    """Random particles inside the domain with random velocity, affine velocity and stress."""
-    def vec(values):
-        f = ti.Vector.field(values.shape[-1], ti.f64, shape=N, needs_grad=True)
-        f.from_numpy(values)
-        return f
-
-    def mat(values):
-        f = ti.Matrix.field(3, 3, ti.f64, shape=N, needs_grad=True)
-        f.from_numpy(values)
-        return f
-
+def _inputs(model, rng):
+    """Random particles inside the domain with random velocity, affine velocity and stress (numpy)."""
     lo, hi = np.array(model.lower) + 0.01, np.array(model.upper) - 0.01
-    x = vec(rng.uniform(lo, hi, size=(N, 3)))
-    v = vec(rng.normal(scale=0.3, size=(N, 3)))
-    C = mat(rng.normal(scale=5.0, size=(N, 3, 3)))
-    tau = mat(rng.normal(scale=1e3, size=(N, 3, 3)))
-    return x, v, C, tau
+    return {"x": rng.uniform(lo, hi, size=(N, 3)), "v": rng.normal(scale=0.3, size=(N, 3)),
+            "C": rng.normal(scale=5.0, size=(N, 3, 3)), "tau": rng.normal(scale=1e3, size=(N, 3, 3))}
 
 
-def _grid(model, n, needs_grad=True):
+def _particle_fields(values):
+    return {k: (ti.Vector.field(3, ti.f64, shape=N) if v.ndim == 2 else ti.Matrix.field(3, 3, ti.f64, shape=N))
+            for k, v in values.items()}
+
+
+def _load(fields, values):
+    for k, v in values.items():
+        fields[k].from_numpy(v)
+
+
+def _grid(model, n):
     if n == 1:
-        return ti.field(ti.f64, shape=model.grid_shape, needs_grad=needs_grad)
-    return ti.Vector.field(n, ti.f64, shape=model.grid_shape, needs_grad=needs_grad)
+        return ti.field(ti.f64, shape=model.grid_shape)
+    return ti.Vector.field(n, ti.f64, shape=model.grid_shape)
+
+
+# Central differences: L is linear in v, C, τ and the grid velocities (a step of 1 is exact but for rounding), and a
+# piecewise polynomial in x (the quadratic B-spline's weights, times the affine offsets): a step of 1e-7 m (1e-5 of
+# a cell) leaves a truncation of about 1e-10 relative, unless a particle sits within the step of a knot of the
+# spline, where its second derivative jumps (a chance of about 1e-4 over the 40 particles).
+STEPS = {"x": 1e-7, "v": 1.0, "C": 1.0, "tau": 1.0, "grid_v": 1.0}
+
+
+def _directional(loss, values, name, direction):
+    """(L(values + h d) − L(values − h d)) / 2h for the input `name`, h = STEPS[name]."""
+    h = STEPS[name]
+    plus, minus = dict(values), dict(values)
+    plus[name] = values[name] + h * direction
+    minus[name] = values[name] - h * direction
+    return (loss(plus) - loss(minus)) / (2 * h)
+
+
+def _check(title, loss, values, grads, rng, directions=3):
+    """The hand-written gradient of every input against central differences in `directions` random directions."""
+    worst = {}
+    for name, g in grads.items():
+        for _ in range(directions):
+            d = rng.normal(size=values[name].shape)
+            fd = _directional(loss, values, name, d)
+            worst[name] = max(worst.get(name, 0.0), abs(fd - float(np.sum(g * d))) / max(abs(fd), 1e-300))
+    report(title, **worst)
+    assert max(worst.values()) < TOL, worst
 
 
 @ti.kernel
@@ -62,13 +90,6 @@ def _p2g(model: ti.template(), x: ti.template(), v: ti.template(), C: ti.templat
          grid_m: ti.template(), grid_mv: ti.template()):
     for p in range(N):
         transfer.scatter(model, grid_m, grid_mv, 0, False, x[p], v[p], C[p], tau[p], p)
-
-
-@ti.kernel
-def _grid_loss(grid_m: ti.template(), grid_mv: ti.template(), a: ti.template(), b: ti.template(),
-               loss: ti.template()):
-    for I in ti.grouped(grid_m):
-        loss[None] += a[I].dot(grid_mv[I]) + b[I] * grid_m[I]
 
 
 @ti.kernel
@@ -82,30 +103,31 @@ def _p2g_by_hand(model: ti.template(), x: ti.template(), v: ti.template(), C: ti
                 out[p, 2 + i, j], out[p, 5 + i, j] = gC[i, j], gtau[i, j]
 
 
-def _rel(hand, auto):
-    return float(np.abs(hand - auto).max() / max(np.abs(auto).max(), 1e-300))
-
-
-def test_p2g_backward_matches_autodiff(model):
+def test_p2g_backward_matches_finite_differences(model):
     """L = Σ_i a_i·(mv)_i + b_i m_i after P2G: ∂L/∂x, ∂L/∂v, ∂L/∂C and ∂L/∂τ by hand (transfer.p2g_backward)
-    against Taichi's reverse of transfer.scatter (atomic)."""
+    against central differences of transfer.scatter (atomic), in 3 random directions each."""
     rng = np.random.default_rng(0)
-    x, v, C, tau = _fields(model, rng)
+    values = _inputs(model, rng)
+    f = _particle_fields(values)
     grid_m, grid_mv = _grid(model, 1), _grid(model, 3)
-    a, b = _grid(model, 3, False), _grid(model, 1, False)
-    a.from_numpy(rng.normal(size=model.grid_shape + (3,)))
-    b.from_numpy(rng.normal(size=model.grid_shape))
-    loss = ti.field(ti.f64, shape=(), needs_grad=True)
-    with ti.ad.Tape(loss=loss):
-        _p2g(model, x, v, C, tau, grid_m, grid_mv)
-        _grid_loss(grid_m, grid_mv, a, b, loss)
+    a, b = _grid(model, 3), _grid(model, 1)
+    a_np, b_np = rng.normal(size=model.grid_shape + (3,)), rng.normal(size=model.grid_shape)
+    a.from_numpy(a_np)
+    b.from_numpy(b_np)
+
+    def loss(vals):
+        _load(f, vals)
+        grid_m.fill(0.0)
+        grid_mv.fill(0.0)
+        _p2g(model, f["x"], f["v"], f["C"], f["tau"], grid_m, grid_mv)
+        return float(np.sum(a_np * grid_mv.to_numpy()) + np.sum(b_np * grid_m.to_numpy()))
+
+    _load(f, values)
     out = np.zeros((N, 8, 3))
-    _p2g_by_hand(model, x, v, C, tau, a, b, out)
-    errors = {"x": _rel(out[:, 0], x.grad.to_numpy()), "v": _rel(out[:, 1], v.grad.to_numpy()),
-              "C": _rel(out[:, 2:5], C.grad.to_numpy()), "tau": _rel(out[:, 5:8], tau.grad.to_numpy())}
-    report("P2G backward vs autodiff", **errors)
-    assert max(errors.values()) < TOL, errors
-    assert np.abs(x.grad.to_numpy()).max() > 0 and np.abs(tau.grad.to_numpy()).max() > 0  # exercised
+    _p2g_by_hand(model, f["x"], f["v"], f["C"], f["tau"], a, b, out)
+    assert np.abs(out[:, 0]).max() > 0 and np.abs(out[:, 5:8]).max() > 0  # exercised
+    _check("P2G backward vs finite differences", loss, values,
+           {"x": out[:, 0], "v": out[:, 1], "C": out[:, 2:5], "tau": out[:, 5:8]}, rng)
 
 
 @ti.kernel
@@ -129,31 +151,35 @@ def _g2p_by_hand(model: ti.template(), x: ti.template(), grid_v: ti.template(), 
             out[p, i] = g[i]
 
 
-def test_gather_backward_matches_autodiff(model):
+def test_gather_backward_matches_finite_differences(model):
     """L = Σ_p a_p·(x_p + Δt v_p) + b_p·v_p + c_p:C_p after G2P: ∂L/∂x and ∂L/∂v_i by hand
     (transfer.gather_backward, reading the node velocities from a time-indexed store as the differentiable
-    solver does) against Taichi's reverse of transfer.gather."""
+    solver does) against central differences of transfer.gather, in 3 random directions each."""
     rng = np.random.default_rng(1)
-    x, _, _, _ = _fields(model, rng)
-    grid_v = _grid(model, 3)
-    values = rng.normal(scale=0.5, size=model.grid_shape + (3,))
-    grid_v.from_numpy(values)
+    values = {"x": _inputs(model, rng)["x"], "grid_v": rng.normal(scale=0.5, size=model.grid_shape + (3,))}
+    x, grid_v = ti.Vector.field(3, ti.f64, shape=N), _grid(model, 3)
     stored_v = ti.Vector.field(3, ti.f64, shape=(1,) + tuple(model.grid_shape))
-    stored_v.from_numpy(values[None])
     a, b = (ti.Vector.field(3, ti.f64, shape=N) for _ in range(2))
     c = ti.Matrix.field(3, 3, ti.f64, shape=N)
     a.from_numpy(rng.normal(size=(N, 3)))
     b.from_numpy(rng.normal(size=(N, 3)))
     c.from_numpy(rng.normal(size=(N, 3, 3)))
-    loss = ti.field(ti.f64, shape=(), needs_grad=True)
-    with ti.ad.Tape(loss=loss):
-        _g2p(model, x, grid_v, a, b, c, loss)
-    grid_grad = _grid(model, 3, False)
+    total = ti.field(ti.f64, shape=())
+
+    def loss(vals):
+        x.from_numpy(vals["x"])
+        grid_v.from_numpy(vals["grid_v"])
+        total[None] = 0.0
+        _g2p(model, x, grid_v, a, b, c, total)
+        return float(total[None])
+
+    x.from_numpy(values["x"])
+    grid_v.from_numpy(values["grid_v"])
+    stored_v.from_numpy(values["grid_v"][None])
+    grid_grad = _grid(model, 3)
     out = np.zeros((N, 3))
     _g2p_by_hand(model, x, grid_v, stored_v, a, b, c, grid_grad, out)
-    errors = {"x": _rel(out, x.grad.to_numpy()), "grid_v": _rel(grid_grad.to_numpy(), grid_v.grad.to_numpy())}
-    report("gather backward vs autodiff", **errors)
-    assert max(errors.values()) < TOL, errors
+    _check("gather backward vs finite differences", loss, values, {"x": out, "grid_v": grid_grad.to_numpy()}, rng)
 
 
 @ti.kernel
