@@ -1,0 +1,101 @@
+"""Where a test run's time goes into compiling: each Taichi kernel instance's first launch timed (its compile, and one
+run of a kernel that is small at the suite's sizes), summed per test file and per kernel.
+
+As a pytest plugin (both pytest-xdist processes load it; each writes its own JSON when it ends):
+
+    TI_OFFLINE_CACHE_FILE_PATH=$(mktemp -d) PYTHONPATH=bench COMPILE_PROFILE_DIR=/tmp/cp \\
+        .venv/bin/python -m pytest -q -n 2 --dist loadfile -p compile_profile tests
+    python bench/compile_profile.py /tmp/cp ["a note on the run"]   # the table: bench/results/compile_profile_cpu.txt
+
+A kernel instance is Taichi's (kernel, template arguments) pair: a scene built again, or with other fields, compiles
+its kernels again. Processes that the tests start (the command line, the ROS nodes) are not counted.
+"""
+import collections
+import json
+import os
+import sys
+import time
+from datetime import date
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+_per_file = collections.Counter()
+_per_kernel = collections.Counter()
+_count = collections.Counter()
+_seen = set()
+_current = ["(outside a test)"]
+
+
+def _install():
+    from taichi.lang import kernel_impl
+
+    launch = kernel_impl.Kernel.__call__
+
+    def first_launch_timed(self, *args, **kwargs):
+        try:
+            key = (id(self), self.mapper.lookup(kernel_impl._process_args(self, args, kwargs))[0])
+        except Exception:  # let Taichi raise its own error
+            return launch(self, *args, **kwargs)
+        if key in _seen:
+            return launch(self, *args, **kwargs)
+        _seen.add(key)
+        t = time.perf_counter()
+        try:
+            return launch(self, *args, **kwargs)
+        finally:
+            dt = time.perf_counter() - t
+            name = f"{getattr(self.func, '__qualname__', self.func)}[{self.autodiff_mode.name}]"
+            _per_kernel[name] += dt
+            _count[name] += 1
+            _per_file[_current[0]] += dt
+
+    kernel_impl.Kernel.__call__ = first_launch_timed
+
+
+def pytest_configure(config):
+    _install()
+
+
+def pytest_runtest_logstart(nodeid, location):
+    _current[0] = nodeid.split("::")[0]
+
+
+def pytest_sessionfinish(session):
+    out = Path(os.environ.get("COMPILE_PROFILE_DIR", ROOT / "bench" / "results" / "compile_profile"))
+    out.mkdir(parents=True, exist_ok=True)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    (out / f"first_launches_{worker}.json").write_text(json.dumps(
+        {"per_file": _per_file, "per_kernel": _per_kernel, "count": _count}, indent=1))
+
+
+def summarise(folder: Path, out: Path, note: str = "", top: int = 40):
+    per_file, per_kernel, count = collections.Counter(), collections.Counter(), collections.Counter()
+    files = sorted(folder.glob("first_launches_*.json"))
+    if not files:
+        raise SystemExit(f"no first_launches_*.json in {folder}: run the tests with -p compile_profile first")
+    for f in files:
+        d = json.loads(f.read_text())
+        per_file.update(d["per_file"])
+        per_kernel.update(d["per_kernel"])
+        count.update(d["count"])
+    total = sum(per_file.values())
+    lines = [f"# bench/compile_profile.py {folder} ({len(files)} processes); summarised {date.today()}"]
+    lines += [f"# {note}"] if note else []
+    lines += [
+             f"first launches (compiles) in all: {total:.0f} s over {sum(count.values())} kernel instances",
+             "", "seconds  test file"]
+    lines += [f"{v:7.1f}  {k}" for k, v in per_file.most_common()]
+    lines += ["", f"seconds  instances  kernel [autodiff mode] (the {top} largest)"]
+    lines += [f"{v:7.1f}  {count[k]:9d}  {k}" for k, v in per_kernel.most_common(top)]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        raise SystemExit(0 if len(sys.argv) >= 2 else 2)
+    summarise(Path(sys.argv[1]), ROOT / "bench" / "results" / "compile_profile_cpu.txt",
+              sys.argv[2] if len(sys.argv) > 2 else "")
