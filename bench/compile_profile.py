@@ -20,13 +20,15 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 _per_file = collections.Counter()
-_per_kernel = collections.Counter()
+per_kernel = collections.Counter()  # first-launch seconds by 'qualname[autodiff mode]'
 _count = collections.Counter()
 _seen = set()
 _current = ["(outside a test)"]
 
 
-def _install():
+def install():
+    """Wrap Taichi's kernel launch so that each kernel instance's first launch adds its seconds to per_kernel
+    (and to the current test file's)."""
     from taichi.lang import kernel_impl
 
     launch = kernel_impl.Kernel.__call__
@@ -45,7 +47,7 @@ def _install():
         finally:
             dt = time.perf_counter() - t
             name = f"{getattr(self.func, '__qualname__', self.func)}[{self.autodiff_mode.name}]"
-            _per_kernel[name] += dt
+            per_kernel[name] += dt
             _count[name] += 1
             _per_file[_current[0]] += dt
 
@@ -53,7 +55,7 @@ def _install():
 
 
 def pytest_configure(config):
-    _install()
+    install()
 
 
 def pytest_runtest_logstart(nodeid, location):
@@ -65,7 +67,7 @@ def pytest_sessionfinish(session):
     out.mkdir(parents=True, exist_ok=True)
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     (out / f"first_launches_{worker}.json").write_text(json.dumps(
-        {"per_file": _per_file, "per_kernel": _per_kernel, "count": _count}, indent=1))
+        {"per_file": _per_file, "per_kernel": per_kernel, "count": _count}, indent=1))
 
 
 def summarise(folder: Path, out: Path, note: str = "", top: int = 40):
