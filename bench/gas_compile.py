@@ -65,7 +65,7 @@ def child(limiter: str) -> dict:
     t = time.perf_counter()
     r2 = sim.rollout(acts, loss, grad=True)
     t_second = time.perf_counter() - t
-    advect = {k: v for k, v in first.items() if any(s in k for s in ("advect", "trace", "backtrace"))}
+    advect = {k: v for k, v in first.items() if any(s in k for s in ("advect", "trace"))}
     out = {"first_rollout_s": t_first, "second_rollout_s": t_second, "compile_s_all": sum(first.values()),
            "advection_first_calls_s": sum(advect.values()), "loss": float(r1.loss),
            "grad_norm": float(np.linalg.norm(r1.grad_actions)), "grads_equal": bool(np.allclose(
