@@ -55,21 +55,35 @@ def node_velocity(model: ti.template(), I, m, mv, state: ti.template(), s):
     vn = ti.Vector.zero(float, 3)
     if m > model.mass_floor:
         vn = mv / m + model.dt * ti.Vector(model.gravity)
-        xn = ti.Vector(model.origin) + I * model.dx
-        vn = boundary(model, xn, vn, state, s)
+        vn = boundary(model, I, vn, state, s)
     return vn
 
 
 @ti.func
-def boundary(model: ti.template(), xn, vn, state: ti.template(), s):
-    """Velocity vn of the node at xn after the statics', the tools' (at their slot-s pose) and the walls'
-    conditions."""
+def boundary(model: ti.template(), I, vn, state: ti.template(), s):
+    """Velocity vn of node I after the statics' (their geometry there from fill_static_geometry), the tools' (at
+    their slot-s pose) and the walls' conditions."""
+    xn = ti.Vector(model.origin) + I * model.dx
     for k in ti.static(range(len(model.colliders))):
-        vn = model.colliders[k].grid(xn, vn)
+        vn = model.colliders[k].apply(model.static_mode[k, I[0], I[1], I[2]], model.static_normal[k, I[0], I[1], I[2]],
+                                      model.static_normal2[k, I[0], I[1], I[2]], vn)
     for k in ti.static(range(model.n_tools)):
         vn = model.tools[k].contact_at(xn, vn, state.tool_p_real[k, s], state.tool_R_real[k, s],
                                        state.tool_v_real[k, s], state.tool_w_real[k, s])
     return walls(model, xn, vn)
+
+
+@ti.kernel
+def fill_static_geometry(model: ti.template()):
+    """Each static's grid condition at each node (statics.Collider.geometry) into model.static_mode,
+    static_normal and static_normal2: statics do not move, so it is computed once, when the model is uploaded."""
+    for I in ti.grouped(ti.ndrange(*model.grid_shape)):
+        xn = ti.Vector(model.origin) + I * model.dx
+        for k in ti.static(range(len(model.colliders))):
+            mode, n, n2 = model.colliders[k].geometry(xn)
+            model.static_mode[k, I[0], I[1], I[2]] = ti.cast(mode, ti.i8)
+            model.static_normal[k, I[0], I[1], I[2]] = n
+            model.static_normal2[k, I[0], I[1], I[2]] = n2
 
 
 @ti.func

@@ -149,6 +149,15 @@ class Model:
         # statics and tools as Taichi functions (SDFs in the world or tool frame)
         self.colliders = [statics.Collider(statics.sdf_func(st.shape, real, 0.5 * self.dx, self._uploads), st.friction,
                                            st.sticky, 0.01 * self.dx, self.dx) for st in spec.statics]
+        # what each static's grid condition does at each node (statics.Collider.geometry: the mode and the surface
+        # normals), which depends on the node's position only: filled once in upload() (grid.fill_static_geometry),
+        # read by every grid update. Evaluated in the update itself, the SDF and its central-difference gradients
+        # (up to 14 SDF evaluations a static a node) were most of the grid update's reverse-mode kernel, whose
+        # compile was the test suite's largest after the gas's (docs/engine.md, "Statics' geometry per node").
+        n_col = len(self.colliders)
+        self.static_mode = ti.field(ti.i8, shape=(n_col, *self.grid_shape)) if n_col else None
+        self.static_normal = ti.Vector.field(3, real, shape=(n_col, *self.grid_shape)) if n_col else None
+        self.static_normal2 = ti.Vector.field(3, real, shape=(n_col, *self.grid_shape)) if n_col else None
         self.tool_specs = list(spec.tools)
         self.tools = [Tool(t, real, self.dx, self._uploads) for t in spec.tools]
         self.n_tools = len(self.tools)
@@ -178,6 +187,8 @@ class Model:
         for target, data in self._uploads:
             target.from_numpy(data)
         self._uploads = []
+        if self.colliders:
+            grid.fill_static_geometry(self)
         if self.two_fields:
             grid.fill_solid_share(self)
 

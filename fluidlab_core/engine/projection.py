@@ -1014,9 +1014,8 @@ class LiquidProjection:
         if ti.static(self.has_soft):  # the solids' nodes: v = v* + Δt Δx² M⁻¹ G (soft_of(p) above), then the
             for K in ti.grouped(self.kind):  # statics', the tools' and the walls' conditions
                 if self.soft_m[K] > 0.0:
-                    xn = ti.Vector(self.model.origin) + K * self.model.dx
                     v = self.soft_v[K] + dt * dx * dx * self.soft_dv[K]
-                    self.solver.grid_v[K] = grid.boundary(self.model, xn, ti.cast(v, self.model.real), state, 0)
+                    self.solver.grid_v[K] = grid.boundary(self.model, K, ti.cast(v, self.model.real), state, 0)
 
     @ti.kernel
     def _start(self):
@@ -1349,8 +1348,7 @@ class LiquidProjection:
                 s.grid_v_f[I] -= ti.cast(dt * G, self.model.real)
         for I in ti.grouped(self.kind):
             if s.grid_m_f[I] > self.model.mass_floor:
-                xn = ti.Vector(self.model.origin) + I * self.model.dx
-                s.grid_v_f[I] = grid.boundary(self.model, xn, s.grid_v_f[I], state, 0)
+                s.grid_v_f[I] = grid.boundary(self.model, I, s.grid_v_f[I], state, 0)
 
     @ti.kernel
     def faces(self):

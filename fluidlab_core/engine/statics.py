@@ -55,6 +55,8 @@ MEDIAL_GRADIENT = 0.5
 # half a cell of the floor, and without this they let the liquid into the floor along the edges (water in a tank
 # with its floor 0.9 cells above a node row piled 2.5 % of its particles on the floor there in 1 s).
 SECOND_SURFACE = 0.45
+# Collider.geometry's modes: what the grid condition does at a node (kept per node in Model.static_mode)
+FREE, STOP, SLIP, SLIP2 = 0, 1, 2, 3
 
 
 @ti.func
@@ -225,8 +227,9 @@ def sdf_normal(sdf, h: float):
 
 
 class Collider:
-    """A static collider's two Taichi hooks: `grid(x, v) -> v` at grid nodes and `particle(x, v) -> (x, v)`
-    after G2P (see the module docstring)."""
+    """A static collider's Taichi hooks: at grid nodes `geometry(x) -> (mode, n, n2)`, computed once per node since
+    a static does not move, and `apply(mode, n, n2, v) -> v` in each grid update; `particle(x, v) -> (x, v)` after
+    G2P (see the module docstring)."""
 
     def __init__(self, sdf, friction: float, sticky: bool, h: float, dx: float):
         sticky_band = dx  # sticky statics hold nodes up to a cell outside, so the touching particles stop
@@ -250,25 +253,44 @@ class Collider:
             return v
 
         @ti.func
-        def grid(x, v):
+        def geometry(x):
+            """What the grid condition does at the node at x: (mode, n, n2), mode FREE (nothing), STOP (v = 0),
+            SLIP (slip along the normal n) or SLIP2 (then along a second surface's n2). It depends on the node's
+            position only, so the model computes it once per node (grid.fill_static_geometry) and the grid
+            update reads it (apply)."""
+            mode = FREE
+            n = ti.Vector.zero(float, 3)
+            n2 = ti.Vector.zero(float, 3)
             phi = sdf(x)
             if ti.static(sticky):
                 if phi < sticky_band:
-                    v = ti.Vector.zero(float, 3)
+                    mode = STOP
             elif phi < on_surface:
                 grad = gradient(x)
                 g = safe_norm(grad)
                 if g < MEDIAL_GRADIENT:  # no direction to slip along: the node stops
-                    v = ti.Vector.zero(float, 3)
+                    mode = STOP
                 else:
+                    mode = SLIP
                     n = grad / g
-                    v = slip(v, n)
                     # a second surface within half a cell: seen from the point half a cell out from the first
                     # (SECOND_SURFACE), as a floor beside a wall is from the nodes along their edge
                     x2 = x + (on_surface - phi) * n
                     if sdf(x2) < second_surface:
+                        mode = SLIP2
                         grad2 = gradient(x2)
-                        v = slip(v, grad2 / (safe_norm(grad2) + 1e-12))
+                        n2 = grad2 / (safe_norm(grad2) + 1e-12)
+            return mode, n, n2
+
+        @ti.func
+        def apply(mode, n, n2, v):
+            """The grid condition on velocity v at a node whose geometry() is (mode, n, n2)."""
+            if mode == STOP:
+                v = ti.Vector.zero(float, 3)
+            elif mode >= SLIP:
+                v = slip(v, n)
+                if mode == SLIP2:
+                    v = slip(v, n2)
             return v
 
         @ti.func
@@ -291,6 +313,7 @@ class Collider:
         self.sdf = sdf  # φ(x) in the world frame (m), negative inside (the liquid projection's face shares)
         self.normal = normal  # ∇φ/|∇φ| (rigid.py's contact)
         self.friction, self.sticky = float(friction), bool(sticky)  # (rigid.py's contact reads them)
-        self.grid = grid
+        self.geometry = geometry
+        self.apply = apply
         self.particle = particle
         self.stencil_fill = stencil_fill
