@@ -12,6 +12,9 @@ ON_SURFACE), velocity v after the grid update:
     otherwise, with vₙ = v·n: if vₙ < 0 (moving into the collider)
                       v_t = v − vₙ n,  v ← v_t · max(0, 1 + μ vₙ / |v_t|)     (Coulomb friction, μ ≥ 0)
     separating velocities (vₙ ≥ 0) are left alone.
+Which of these applies at a node, and its normals, depend on the node's position only: `Collider.geometry` is
+evaluated once per node when the model is uploaded (grid.fill_static_geometry) and each grid update applies it
+(`Collider.apply`), so the SDF is not in the grid update's kernels, nor in their reverse mode.
 
 Particle projection after G2P: a particle found inside (φ(x_p) < 0) is moved back to the surface,
 x_p ← x_p − φ n, and loses its inward normal velocity.
