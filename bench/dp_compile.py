@@ -1,0 +1,137 @@
+"""What the differentiable solver's first gradient rollouts spend compiling, for this tree and (with --rev) an
+earlier revision, in alternating fresh processes with empty Taichi caches.
+
+    python bench/dp_compile.py [--rev HEAD~1] [--rounds 2] [--scenes GatheringEasy gradient_scene]
+
+Scenes:
+- a task's name (small size, float32): the first two iterations of DP over the whole horizon (no expanding region,
+  no attraction), as tests/test_optim.py's first DP test runs it;
+- `gradient_scene`: tests/test_gradients.py's float64 scene (six material classes, a box static with friction, a
+  soft and a hard tool) and its first gradient rollout of 6 steps, built here as that file builds it (its
+  build_scene and build_problem, imported from the tree under test).
+Both with FLUIDLAB_FAST_COMPILE=1, as the test suite runs. Reported per run: the seconds to the end of the first
+gradient work (nearly all compilation at these sizes), the first-launch seconds of the grid update's reverse kernel
+and of all kernels (bench/compile_profile.py's wrapper on Taichi's kernel launch), and what the run computed (the
+losses; the gradient's norm), which must not change. Writes bench/results/dp_compile_<backend>.txt (medians over
+the rounds, and after/before ratios).
+"""
+import argparse
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def child(scene: str) -> dict:
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import compile_profile  # times each kernel instance's first launch
+
+    compile_profile.install()
+    first = compile_profile.per_kernel
+    import fluidlab_core as fl
+
+    t0 = time.perf_counter()
+    if scene == "gradient_scene":
+        fl.init(arch="cpu", precision="f64", seed=0)
+        sys.path.insert(0, os.getcwd())  # the tree under test's tests/
+        from tests import test_gradients as tg
+
+        sim = tg.build_scene()
+        loss, actions = tg.build_problem(sim)
+        r = sim.rollout(actions, loss, grad=True, segment_steps=2)
+        out = {"losses": [float(r.loss)], "grad_norm": float(np.linalg.norm(r.grad_actions))}
+    else:
+        from fluidlab_core import tasks
+        from fluidlab_core.optim import dp
+
+        fl.init(arch="cpu", precision="f32", seed=0)
+        task = tasks.make(scene, "small")
+        seen = []
+        dp.run(task, budget=2 * task.horizon, seed=0, callback=seen.append,
+               options=dp.DPOptions(expanding_region=False, attraction=False))
+        out = {"losses": [float(p.loss) for p in seen], "grad_norm": None}
+    out["first_gradient_s"] = time.perf_counter() - t0
+    out["grid_update_reverse_s"] = sum(v for k, v in first.items() if k.startswith("DiffSolver.grid_update[REVERSE"))
+    out["compile_s_all"] = sum(first.values())
+    return out
+
+
+def run_child(tree: Path, scene: str) -> dict:
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, PYTHONPATH=str(tree), TI_OFFLINE_CACHE_FILE_PATH=cache, FLUIDLAB_FAST_COMPILE="1")
+        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", scene], cwd=str(tree),
+                             env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"child on {tree} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rev", help="an earlier revision to compare with (checked out into a temporary worktree)")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--scenes", nargs="+", default=["GatheringEasy", "gradient_scene"])
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "dp_compile_cpu.txt"))
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child)))
+        return
+    trees = {"after": ROOT}
+    tmp = None
+    if args.rev:
+        tmp = Path(tempfile.mkdtemp()) / "before"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tmp), args.rev], check=True,
+                       capture_output=True)
+        trees = {"before": tmp, "after": ROOT}
+    results = {(name, sc): [] for name in trees for sc in args.scenes}
+    try:
+        for r in range(args.rounds):
+            for sc in args.scenes:
+                for name, tree in trees.items():
+                    res = run_child(tree, sc)
+                    results[(name, sc)].append(res)
+                    print(f"round {r + 1}/{args.rounds} {sc:<15} {name:<6} " + ", ".join(
+                        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in res.items()), flush=True)
+    finally:
+        if tmp is not None:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tmp)], capture_output=True)
+            shutil.rmtree(tmp.parent, ignore_errors=True)
+    rev = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
+                         text=True).stdout.strip()
+    figures = ["first_gradient_s", "grid_update_reverse_s", "compile_s_all"]
+    lines = [f"# bench/dp_compile.py{' --rev ' + args.rev if args.rev else ''} --rounds {args.rounds}; after = {rev}; "
+             f"{platform.machine()}, {os.cpu_count()} cores, {date.today()}; medians, empty Taichi cache per run, "
+             "FLUIDLAB_FAST_COMPILE=1", f"{'scene':<16}{'figure':<24}" + "".join(f"{n:>10}" for n in trees)
+             + ("     after/before" if args.rev else "")]
+    for sc in args.scenes:
+        for fig in figures:
+            med = {n: statistics.median(x[fig] for x in results[(n, sc)]) for n in trees}
+            line = f"{sc:<16}{fig:<24}" + "".join(f"{med[n]:10.3g}" for n in trees)
+            if args.rev:
+                line += f"{med['after'] / med['before']:17.2f}"
+            lines.append(line)
+        if args.rev:
+            pairs = list(zip(results[("after", sc)], results[("before", sc)]))
+            same = all(a["losses"] == b["losses"] for a, b in pairs)
+            close = all(a["grad_norm"] is None or abs(a["grad_norm"] - b["grad_norm"]) <= 1e-12 * abs(b["grad_norm"])
+                        for a, b in pairs)
+            lines.append(f"{sc:<16}losses equal to before, bit for bit: {same}; gradient norm within 1e-12: {close}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
