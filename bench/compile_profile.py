@@ -13,7 +13,12 @@ its kernels again. Processes that the tests start (the command line, the ROS nod
 import collections
 import json
 import os
+import platform
+import shutil
+import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from datetime import date
 from pathlib import Path
@@ -93,6 +98,64 @@ def summarise(folder: Path, out: Path, note: str = "", top: int = 40):
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"wrote {out}")
+
+
+def run_child(script: Path, tree: Path, arg: str) -> dict:
+    """`script --child arg` in a fresh process on `tree`'s package (PYTHONPATH, working directory) with an empty
+    Taichi cache and fast compilation, as the test suite compiles; its last line of output, as JSON."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, PYTHONPATH=str(tree), TI_OFFLINE_CACHE_FILE_PATH=cache, FLUIDLAB_FAST_COMPILE="1")
+        out = subprocess.run([sys.executable, str(script), "--child", arg], cwd=str(tree), env=env,
+                             capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"child on {tree} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def before_after(script: Path, cases: list, rev: str | None, rounds: int, figures: list, out: Path,
+                 same=None) -> None:
+    """The compile benchmarks' driver (bench/gas_compile.py, bench/dp_compile.py): run_child(script, tree, case)
+    for each case, for this tree ("after") and, with `rev`, that revision ("before", checked out into a temporary
+    git worktree), alternating, `rounds` times; then a table of each figure's median per tree (and after/before)
+    into `out`. same(after_runs, before_runs) -> str, if given, adds a line per case (what must not change)."""
+    trees = {"after": ROOT}
+    tmp = None
+    if rev:
+        tmp = Path(tempfile.mkdtemp()) / "before"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tmp), rev], check=True,
+                       capture_output=True)
+        trees = {"before": tmp, "after": ROOT}
+    results = {(name, case): [] for name in trees for case in cases}
+    try:
+        for r in range(rounds):
+            for case in cases:
+                for name, tree in trees.items():
+                    res = run_child(script, tree, case)
+                    results[(name, case)].append(res)
+                    print(f"round {r + 1}/{rounds} {case:<15} {name:<6} " + ", ".join(
+                        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in res.items()), flush=True)
+    finally:
+        if tmp is not None:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tmp)], capture_output=True)
+            shutil.rmtree(tmp.parent, ignore_errors=True)
+    head = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
+                          text=True).stdout.strip()
+    lines = [f"# bench/{Path(script).name}{' --rev ' + rev if rev else ''} --rounds {rounds}; after = {head}; "
+             f"{platform.machine()}, {os.cpu_count()} cores, {date.today()}; medians, empty Taichi cache per run, "
+             "FLUIDLAB_FAST_COMPILE=1", f"{'case':<16}{'figure':<26}" + "".join(f"{n:>10}" for n in trees)
+             + ("     after/before" if rev else "")]
+    for case in cases:
+        for fig in figures:
+            med = {n: statistics.median(x[fig] for x in results[(n, case)]) for n in trees}
+            line = f"{case:<16}{fig:<26}" + "".join(f"{med[n]:10.3g}" for n in trees)
+            if rev:
+                line += f"{med['after'] / med['before']:17.2f}"
+            lines.append(line)
+        if rev and same is not None:
+            lines.append(f"{case:<16}{same(results[('after', case)], results[('before', case)])}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":

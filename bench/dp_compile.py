@@ -18,14 +18,8 @@ the rounds, and after/before ratios).
 import argparse
 import json
 import os
-import platform
-import shutil
-import statistics
-import subprocess
 import sys
-import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,14 +61,12 @@ def child(scene: str) -> dict:
     return out
 
 
-def run_child(tree: Path, scene: str) -> dict:
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, PYTHONPATH=str(tree), TI_OFFLINE_CACHE_FILE_PATH=cache, FLUIDLAB_FAST_COMPILE="1")
-        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", scene], cwd=str(tree),
-                             env=env, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise RuntimeError(f"child on {tree} failed:\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def _same(after, before) -> str:
+    pairs = list(zip(after, before))
+    same = all(a["losses"] == b["losses"] for a, b in pairs)
+    close = all(a["grad_norm"] is None or abs(a["grad_norm"] - b["grad_norm"]) <= 1e-12 * abs(b["grad_norm"])
+                for a, b in pairs)
+    return f"losses equal to before, bit for bit: {same}; gradient norm within 1e-12: {close}"
 
 
 def main():
@@ -88,49 +80,11 @@ def main():
     if args.child:
         print(json.dumps(child(args.child)))
         return
-    trees = {"after": ROOT}
-    tmp = None
-    if args.rev:
-        tmp = Path(tempfile.mkdtemp()) / "before"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tmp), args.rev], check=True,
-                       capture_output=True)
-        trees = {"before": tmp, "after": ROOT}
-    results = {(name, sc): [] for name in trees for sc in args.scenes}
-    try:
-        for r in range(args.rounds):
-            for sc in args.scenes:
-                for name, tree in trees.items():
-                    res = run_child(tree, sc)
-                    results[(name, sc)].append(res)
-                    print(f"round {r + 1}/{args.rounds} {sc:<15} {name:<6} " + ", ".join(
-                        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in res.items()), flush=True)
-    finally:
-        if tmp is not None:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tmp)], capture_output=True)
-            shutil.rmtree(tmp.parent, ignore_errors=True)
-    rev = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                         text=True).stdout.strip()
-    figures = ["first_gradient_s", "grid_update_reverse_s", "compile_s_all"]
-    lines = [f"# bench/dp_compile.py{' --rev ' + args.rev if args.rev else ''} --rounds {args.rounds}; after = {rev}; "
-             f"{platform.machine()}, {os.cpu_count()} cores, {date.today()}; medians, empty Taichi cache per run, "
-             "FLUIDLAB_FAST_COMPILE=1", f"{'scene':<16}{'figure':<24}" + "".join(f"{n:>10}" for n in trees)
-             + ("     after/before" if args.rev else "")]
-    for sc in args.scenes:
-        for fig in figures:
-            med = {n: statistics.median(x[fig] for x in results[(n, sc)]) for n in trees}
-            line = f"{sc:<16}{fig:<24}" + "".join(f"{med[n]:10.3g}" for n in trees)
-            if args.rev:
-                line += f"{med['after'] / med['before']:17.2f}"
-            lines.append(line)
-        if args.rev:
-            pairs = list(zip(results[("after", sc)], results[("before", sc)]))
-            same = all(a["losses"] == b["losses"] for a, b in pairs)
-            close = all(a["grad_norm"] is None or abs(a["grad_norm"] - b["grad_norm"]) <= 1e-12 * abs(b["grad_norm"])
-                        for a, b in pairs)
-            lines.append(f"{sc:<16}losses equal to before, bit for bit: {same}; gradient norm within 1e-12: {close}")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import compile_profile
+
+    compile_profile.before_after(Path(__file__).resolve(), args.scenes, args.rev, args.rounds,
+                                 ["first_gradient_s", "grid_update_reverse_s", "compile_s_all"], Path(args.out), _same)
 
 
 if __name__ == "__main__":

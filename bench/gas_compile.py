@@ -14,15 +14,8 @@ bench/results/gas_compile_<backend>.txt (medians over the rounds, and after/befo
 """
 import argparse
 import json
-import os
-import platform
-import shutil
-import statistics
-import subprocess
 import sys
-import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,14 +77,10 @@ def child(limiter: str) -> dict:
     return out
 
 
-def run_child(tree: Path, limiter: str) -> dict:
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, PYTHONPATH=str(tree), TI_OFFLINE_CACHE_FILE_PATH=cache, FLUIDLAB_FAST_COMPILE="1")
-        out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", limiter], cwd=str(tree),
-                             env=env, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise RuntimeError(f"child on {tree} failed:\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def _same(after, before) -> str:
+    same = all(abs(a["loss"] - b["loss"]) <= 1e-9 * abs(b["loss"]) and
+               abs(a["grad_norm"] - b["grad_norm"]) <= 1e-6 * abs(b["grad_norm"]) for a, b in zip(after, before))
+    return f"loss and gradient norm equal to before (1e-9, 1e-6 relative): {same}"
 
 
 def main():
@@ -105,50 +94,12 @@ def main():
     if args.child:
         print(json.dumps(child(args.child)))
         return
-    trees = {"after": ROOT}
-    tmp = None
-    if args.rev:
-        tmp = Path(tempfile.mkdtemp()) / "before"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tmp), args.rev], check=True,
-                       capture_output=True)
-        trees = {"before": tmp, "after": ROOT}
-    results = {(name, lim): [] for name in trees for lim in args.limiter}
-    try:
-        for r in range(args.rounds):
-            for lim in args.limiter:
-                for name, tree in trees.items():
-                    res = run_child(tree, lim)
-                    results[(name, lim)].append(res)
-                    print(f"round {r + 1}/{args.rounds} {lim:<10} {name:<6} " + ", ".join(
-                        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in res.items()), flush=True)
-    finally:
-        if tmp is not None:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tmp)], capture_output=True)
-            shutil.rmtree(tmp.parent, ignore_errors=True)
-    rev = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                         text=True).stdout.strip()
-    figures = ["first_rollout_s", "advection_first_calls_s", "compile_s_all", "second_rollout_s",
-               "plume32_ms_per_step"]
-    lines = [f"# bench/gas_compile.py{' --rev ' + args.rev if args.rev else ''} --rounds {args.rounds}; after = {rev}; "
-             f"{platform.machine()}, {os.cpu_count()} cores, {date.today()}; medians, empty Taichi cache per run, "
-             "FLUIDLAB_FAST_COMPILE=1", f"{'limiter':<11}{'figure':<26}" + "".join(f"{n:>10}" for n in trees)
-             + ("     after/before" if args.rev else "")]
-    for lim in args.limiter:
-        for fig in figures:
-            med = {n: statistics.median(x[fig] for x in results[(n, lim)]) for n in trees}
-            line = f"{lim:<11}{fig:<26}" + "".join(f"{med[n]:10.3g}" for n in trees)
-            if args.rev:
-                line += f"{med['after'] / med['before']:17.2f}"
-            lines.append(line)
-        if args.rev:
-            same = all(abs(a["loss"] - b["loss"]) <= 1e-9 * abs(b["loss"]) and
-                       abs(a["grad_norm"] - b["grad_norm"]) <= 1e-6 * abs(b["grad_norm"])
-                       for a, b in zip(results[("after", lim)], results[("before", lim)]))
-            lines.append(f"{lim:<11}loss and gradient norm equal to before (1e-9, 1e-6 relative): {same}")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {args.out}")
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import compile_profile
+
+    compile_profile.before_after(Path(__file__).resolve(), args.limiter, args.rev, args.rounds,
+                                 ["first_rollout_s", "advection_first_calls_s", "compile_s_all", "second_rollout_s",
+                                  "plume32_ms_per_step"], Path(args.out), _same)
 
 
 if __name__ == "__main__":
