@@ -158,6 +158,25 @@ def before_after(script: Path, cases: list, rev: str | None, rounds: int, figure
     print("\n".join(lines))
 
 
+def before_after_cli(doc: str, script: Path, child, case_flag: str, cases: list, figures: list, out: Path,
+                     same=None) -> None:
+    """The command line of a compile benchmark built on before_after: --rev, --rounds, `case_flag` (the cases, default
+    `cases`), --out (default `out`); with the hidden --child CASE, child(CASE)'s dict printed as JSON (run_child)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--rev", help="an earlier revision to compare with (checked out into a temporary worktree)")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument(case_flag, dest="cases", nargs="+", default=cases, metavar=case_flag.lstrip("-").upper())
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--out", default=str(out))
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child)))
+        return
+    before_after(script, args.cases, args.rev, args.rounds, figures, Path(args.out), same)
+
+
 if __name__ == "__main__":
     if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
         print(__doc__)

@@ -15,8 +15,6 @@ and of all kernels (bench/compile_profile.py's wrapper on Taichi's kernel launch
 losses; the gradient's norm), which must not change. Writes bench/results/dp_compile_<backend>.txt (medians over
 the rounds, and after/before ratios).
 """
-import argparse
-import json
 import os
 import sys
 import time
@@ -70,21 +68,12 @@ def _same(after, before) -> str:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rev", help="an earlier revision to compare with (checked out into a temporary worktree)")
-    ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--scenes", nargs="+", default=["GatheringEasy", "gradient_scene"])
-    ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "dp_compile_cpu.txt"))
-    args = ap.parse_args()
-    if args.child:
-        print(json.dumps(child(args.child)))
-        return
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import compile_profile
 
-    compile_profile.before_after(Path(__file__).resolve(), args.scenes, args.rev, args.rounds,
-                                 ["first_gradient_s", "grid_update_reverse_s", "compile_s_all"], Path(args.out), _same)
+    compile_profile.before_after_cli(__doc__, Path(__file__).resolve(), child, "--scenes", ["GatheringEasy", "gradient_scene"],
+                                     ["first_gradient_s", "grid_update_reverse_s", "compile_s_all"],
+                                     ROOT / "bench" / "results" / "dp_compile_cpu.txt", _same)
 
 
 if __name__ == "__main__":

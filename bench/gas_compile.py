@@ -12,8 +12,6 @@ the forward step time of a float32 32³ smoke plume without gradients (the held 
 checked out into a temporary git worktree and runs this script's child code against its own package. Writes
 bench/results/gas_compile_<backend>.txt (medians over the rounds, and after/before ratios).
 """
-import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -84,22 +82,13 @@ def _same(after, before) -> str:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rev", help="an earlier revision to compare with (checked out into a temporary worktree)")
-    ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--limiter", nargs="+", default=["cell", "continuous"])
-    ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "gas_compile_cpu.txt"))
-    args = ap.parse_args()
-    if args.child:
-        print(json.dumps(child(args.child)))
-        return
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import compile_profile
 
-    compile_profile.before_after(Path(__file__).resolve(), args.limiter, args.rev, args.rounds,
-                                 ["first_rollout_s", "advection_first_calls_s", "compile_s_all", "second_rollout_s",
-                                  "plume32_ms_per_step"], Path(args.out), _same)
+    compile_profile.before_after_cli(__doc__, Path(__file__).resolve(), child, "--limiter", ["cell", "continuous"],
+                                     ["first_rollout_s", "advection_first_calls_s", "compile_s_all", "second_rollout_s",
+                                      "plume32_ms_per_step"],
+                                     ROOT / "bench" / "results" / "gas_compile_cpu.txt", _same)
 
 
 if __name__ == "__main__":
