@@ -10,7 +10,8 @@ substep s (`substep_grad`) runs these kernels, built from the same functions as 
     stress: (F_new, τ) = model(...)         autodiff, one kernel per model (all models in one reverse kernel
                                            took 11 minutes to compile)
     P2G                                    backward by hand (transfer.p2g_backward)
-    grid update and the tools' advance     autodiff (grid_update)
+    grid update                            autodiff (grid_update)
+    the tools' advance                     backward by hand (tools.advance_pose_adjoint)
     G2P gather and advection               backward by hand (transfer.gather_backward)
     projection out of statics and walls    autodiff (g2p_project)
     rigid projection                       autodiff of rigid.py's kernels, the polar SVD by hand
@@ -30,7 +31,7 @@ they are atomic.
 import numpy as np
 import taichi as ti
 
-from fluidlab_core.engine import grid, transfer
+from fluidlab_core.engine import grid, tools, transfer
 from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine.emitters import takes_part
 from fluidlab_core.engine.solver import Solver
@@ -171,6 +172,8 @@ class DiffSolver(Solver):
         if self.rigid is not None:
             self.rigid.backward(self.state, s + 1)
         self.g2p_grad(s)
+        if self.model.n_tools:
+            self.advance_tools_grad(s)
         self.grid_update.grad(s)
         self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.model.constitutive))):
@@ -272,7 +275,8 @@ class DiffSolver(Solver):
 
     @ti.kernel
     def grid_update(self, s: ti.i32):
-        """Node velocities at the slot-s tool poses, then the tools' advance to slot s + 1 (for autodiff)."""
+        """Node velocities at the slot-s tool poses (for autodiff; the forward's grid update is mpm_substep's, and
+        the tools' advance that follows it has its own backward, advance_tools_grad)."""
         if ti.static(self.two_fields):
             # both fields in one loop over (field, node): one inlined copy of the boundary conditions, whose
             # gradient dominates this kernel's compile time
@@ -288,9 +292,23 @@ class DiffSolver(Solver):
         else:
             for I in ti.grouped(self.grid_m):
                 self.grid_v[I] = grid.node_velocity(self.model, I, self.grid_m[I], self.grid_mv[I], self.state, s)
+
+    @ti.kernel
+    def advance_tools_grad(self, s: ti.i32):
+        """Backward of the tools' advance from slot s to s + 1 (Solver._advance_tool): the gradients of the slot-s
+        pose and twist from those of the slot-s + 1 pose, by hand (tools.advance_pose_adjoint; Taichi's reverse
+        of it was three quarters of grid_update's reverse compile). This buffer's poses are in the working
+        precision (no float64 copies to sync), and like Taichi's reverse it leaves the slot-s + 1 gradients."""
         ti.loop_config(serialize=True)
         for k in range(self.model.n_tools):
-            self._advance_tool(self.state, s, s + 1, k)
+            st = self.state
+            dt = ti.cast(self.model.tool_dt[None], st.pose_real)
+            g_p, g_R, g_v, g_w = tools.advance_pose_adjoint(st.tool_R[k, s], st.tool_w[k, s], dt,
+                                                            st.tool_p.grad[k, s + 1], st.tool_R.grad[k, s + 1])
+            st.tool_p.grad[k, s] += g_p
+            st.tool_R.grad[k, s] += g_R
+            st.tool_v.grad[k, s] += g_v
+            st.tool_w.grad[k, s] += g_w
 
     @ti.kernel
     def g2p_project(self, s: ti.i32):

@@ -124,6 +124,55 @@ def advance_pose(p, R, lin, ang, dt):
     return p + dt * lin, rotation_from_rotvec(ang * dt) @ R
 
 
+# --- the advance's adjoint ------------------------------------------------------------------------------------
+# advance_pose: p' = p + Δt v,  R' = E(θ) R  with θ = Δt ω, t = |θ|, K = [θ]× and Rodrigues' formula
+#     E = I + a K + b K²,  a = sin t / t,  b = (1 − cos t) / t².
+# With a_θi = c θ_i, b_θi = d θ_i (c = a'(t)/t = (t cos t − sin t)/t³, d = b'(t)/t = (t sin t − 2(1 − cos t))/t⁴)
+# and G_i = ∂K/∂θ_i = [e_i]×:
+#     ∂E/∂θ_i = a G_i + b (G_i K + K G_i) + θ_i (c K + d K²).
+# Given p̄' = ∂L/∂p', R̄' = ∂L/∂R', the adjoint is
+#     p̄ = p̄',  v̄ = Δt p̄',  R̄ = Eᵀ R̄',  ω̄_i = Δt Σ_jk Ē_jk (∂E/∂θ_i)_jk  with Ē = R̄' Rᵀ.
+# Below t = 0.1, a, b, c, d come from their series to t⁶ (the next terms are below 1e-16 of each there): the closed
+# forms lose digits to cancellation at small t (c and d entirely in float32 at the substeps' t ~ 1e-4).
+# Written by hand because Taichi's reverse mode of the advance (its matrix products) was three quarters of the
+# grid update's reverse compile time (GatheringEasy, 15 s of 20 s; docs/engine.md). E itself is the forward's
+# (svd.rotation_from_rotvec), so that R̄ = Eᵀ R̄' is the transpose of what the forward applied.
+@ti.func
+def _rodrigues_coefficients(t2):
+    """(a, b, c, d) of the comment above at t² = t2."""
+    a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0))
+    b = 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0))
+    c = -1.0 / 3.0 + t2 / 30.0 * (1.0 - t2 / 28.0 * (1.0 - t2 / 54.0))
+    d = -1.0 / 12.0 + t2 / 180.0 * (1.0 - t2 / 37.333333333333336 * (1.0 - t2 / 67.5))
+    if t2 >= 1e-2:
+        t = ti.sqrt(t2)
+        sn, cs = ti.sin(t), ti.cos(t)
+        a = sn / t
+        b = (1.0 - cs) / t2
+        c = (t * cs - sn) / (t2 * t)
+        d = (t * sn - 2.0 * (1.0 - cs)) / (t2 * t2)
+    return a, b, c, d
+
+
+@ti.func
+def advance_pose_adjoint(R, ang, dt, g_p1, g_R1):
+    """The adjoint of advance_pose (the comment above): (p̄, R̄, v̄, ω̄) from (p̄', R̄') = (g_p1, g_R1), the
+    gradients of the advanced pose; R, ang, dt as the forward had them."""
+    th = ang * dt
+    K = ti.Matrix([[0.0, -th[2], th[1]], [th[2], 0.0, -th[0]], [-th[1], th[0], 0.0]])
+    a, b, c, d = _rodrigues_coefficients(th.dot(th))
+    E = rotation_from_rotvec(th)
+    g_E = g_R1 @ R.transpose()
+    g_th = ti.Vector([0.0, 0.0, 0.0])
+    for i in ti.static(range(3)):
+        G = ti.Matrix.zero(float, 3, 3)
+        G[(i + 2) % 3, (i + 1) % 3] = 1.0  # [e_i]×
+        G[(i + 1) % 3, (i + 2) % 3] = -1.0
+        dE = a * G + b * (G @ K + K @ G) + th[i] * (c * K + d * (K @ K))
+        g_th[i] = (g_E * dE).sum()
+    return g_p1, E.transpose() @ g_R1, dt * g_p1, dt * g_th
+
+
 def parse_action(specs, action) -> np.ndarray:
     """(n_tools, 6) twists from None, a (6,) array (one tool), an (n, 6) array or a {name: (6,)} dict;
     dimensions outside each tool's action mask are zeroed."""
