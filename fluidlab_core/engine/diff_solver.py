@@ -7,8 +7,9 @@ Its gradient is Taichi's reverse-mode autodiff where that is cheap, and by hand 
 substep s (`substep_grad`) runs these kernels, built from the same functions as the forward, in reverse order:
 
     F_trial = (I + Δt C) F; U, Σ, V = svd(F_trial)   the SVD only for models that need it; backward by hand
-    stress: (F_new, τ) = model(...)         autodiff, one kernel per model (all models in one reverse kernel
-                                           took 11 minutes to compile)
+    stress: (F_new, τ) = model(...)         by hand for the built-in models (constitutive.backward_of), Taichi's
+                                           autodiff for a model registered without one: one kernel per model
+                                           (all models in one reverse kernel took 11 minutes to compile)
     P2G                                    backward by hand (transfer.p2g_backward)
     grid update                            autodiff (grid_update)
     the tools' advance                     backward by hand (tools.advance_pose_adjoint)
@@ -177,7 +178,10 @@ class DiffSolver(Solver):
         self.grid_update.grad(s)
         self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.model.constitutive))):
-            self.stress.grad(s, k)
+            if self.model.constitutive[k].backward is not None:
+                self.stress_backward(s, k)
+            else:
+                self.stress.grad(s, k)
         self.svd_grad(s)
 
     @ti.kernel
@@ -235,6 +239,26 @@ class DiffSolver(Solver):
                         self.F_trial[p], self.state.C[s, p], prm, self.U[p], self.sig[p], self.V[p])
                 else:  # a pool particle not yet emitted: F = I, τ = 0, whatever its slot holds
                     self.F_model[p], self.tau[p] = ti.Matrix.identity(float, 3), ti.Matrix.zero(float, 3, 3)
+
+    @ti.kernel
+    def stress_backward(self, s: ti.i32, k: ti.template()):
+        """The gradient of `stress` for model k by its hand-written backward (constitutive.backward_of): from
+        ∂L/∂F_new and ∂L/∂τ into those of F_trial, C of slot s and the SVD's U, Σ, V, as stress.grad would add
+        them (a plain kernel: it compiles like a forward one)."""
+        for p in range(self.n_particles):
+            if self.model.model[p] == k:
+                if self._active(s, p):  # a pool particle not yet emitted gave constants
+                    prm = self.model.params[k][self.model.material[p]]
+                    g_F, g_C, g_U, g_sig, g_V = self.model.constitutive[k].backward(
+                        self.F_trial[p], self.state.C[s, p], prm, self.U[p], self.sig[p], self.V[p],
+                        self.F_model.grad[p], self.tau.grad[p])
+                    # one thread per particle: plain read-modify-writes, not atomic adds
+                    self.F_trial.grad[p] = self.F_trial.grad[p] + g_F
+                    self.state.C.grad[s, p] = self.state.C.grad[s, p] + g_C
+                    if ti.static(self.model.constitutive[k].needs_svd):
+                        self.U.grad[p] = self.U.grad[p] + g_U
+                        self.sig.grad[p] = self.sig.grad[p] + g_sig
+                        self.V.grad[p] = self.V.grad[p] + g_V
 
     @ti.func
     def _active(self, s, p):
