@@ -45,7 +45,7 @@ face's corners and centre; the statics' SDF sampled once on the host, the tools'
 
 so the stored u is each face's flux velocity, D u = 0 on every cell with an open face, and u moves continuously
 with the tools. Its adjoint: VB̄ = ḡ − Dᵀ y′ with L y′ = D W ḡ, and w̄ = g ⊙ (Dᵀ y′ − ḡ) with g = Dᵀ y of the
-forward solve (L depends on W); the shares' own gradient, through the tools' SDF, comes from face_weights.grad.
+forward solve (L depends on W); the shares' own gradient, through the tools' SDF, comes from face_weights_grad.
 A static's shares are fixed and have no gradient (nor that extra solve). MPM particles stay whole cells.
 
 Gradients (GasSolver.backward_step): the projection is linear, u⁺ = P ũ with P = I − M Dᵀ Π L⁺ Π D, so its
@@ -532,40 +532,50 @@ class GasSolver:
             share = 1.0 - nv * nv / ((nv - q) * (nv - r))
         return share
 
-    @ti.kernel
     def face_weights(self):
-        """The open share w of every face (solids by fractions): 1 or 0 on the domain's walls (open or not), 0 next
+        """The open share w of every face (_face_weights, one kernel an axis)."""
+        for d in range(3):
+            self._face_weights(d)
+
+    def face_weights_grad(self):
+        """The reverse of face_weights: one reverse kernel an axis (as one kernel for the three axes, its reverse
+        compiled in 49 s a scene: Taichi's simplification grows faster than the kernel)."""
+        for d in (2, 1, 0):
+            self._face_weights.grad(d)
+
+    @ti.kernel
+    def _face_weights(self, d: ti.template()):
+        """The open share w of every face of axis d (solids by fractions): 1 or 0 on the domain's walls (open or not), 0 next
         to a cell that shuts whole (a static, tool or particles' cell that does not enter by fractions), else the
         share w_g of the face's area outside the fractional tools and statics, from their SDF at its four corners
         and its centre (four triangles, φ linear on each: Bridson's area fraction; continuous in the tools' poses),
         less the particles' volume share α there with fractional particles: w = max(w_g − α, 0). Shares under
         1e-3 are taken as 0 (they would only slow the solve)."""
-        for d in ti.static(range(3)):
-            for I in ti.grouped(self.face_w[d]):
-                w = 1.0
-                on_wall, is_open, _ = self._wall_face(d, I)
-                if on_wall == 1:
-                    w = ti.cast(is_open, self.real)
-                elif self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
-                        self._shuts_whole(self.solid[self._hi_cell(d, I)]):
+        for I in ti.grouped(self.face_w[d]):
+            w = 1.0
+            on_wall, is_open, _ = self._wall_face(d, I)
+            if on_wall == 1:
+                w = ti.cast(is_open, self.real)
+            elif self._shuts_whole(self.solid[self._lo_cell(d, I)]) or \
+                    self._shuts_whole(self.solid[self._hi_cell(d, I)]):
+                w = 0.0
+            elif ti.static(self.frac_tools or self.frac_statics):
+                pc, _ = self._solid_phi(d, I, -1)
+                p0, _ = self._solid_phi(d, I, 0)
+                p1, _ = self._solid_phi(d, I, 1)
+                p2, _ = self._solid_phi(d, I, 2)
+                p3, _ = self._solid_phi(d, I, 3)
+                w = 0.25 * (self._triangle_share(pc, p0, p1) + self._triangle_share(pc, p1, p2)
+                            + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
+                if w < 1e-3:
                     w = 0.0
-                elif ti.static(self.frac_tools or self.frac_statics):
-                    pc, _ = self._solid_phi(d, I, -1)
-                    p0, _ = self._solid_phi(d, I, 0)
-                    p1, _ = self._solid_phi(d, I, 1)
-                    p2, _ = self._solid_phi(d, I, 2)
-                    p3, _ = self._solid_phi(d, I, 3)
-                    w = 0.25 * (self._triangle_share(pc, p0, p1) + self._triangle_share(pc, p1, p2)
-                                + self._triangle_share(pc, p2, p3) + self._triangle_share(pc, p3, p0))
+            if ti.static(self.frac_particles):
+                self.face_wg[d][I] = w
+                if on_wall == 0:
+                    w = ti.max(w - self.pf_alpha[d][I], 0.0)
                     if w < 1e-3:
                         w = 0.0
-                if ti.static(self.frac_particles):
-                    self.face_wg[d][I] = w
-                    if on_wall == 0:
-                        w = ti.max(w - self.pf_alpha[d][I], 0.0)
-                        if w < 1e-3:
-                            w = 0.0
-                self.face_w[d][I] = w
+            self.face_w[d][I] = w
 
     @ti.kernel
     def _weights_to_poisson(self):
@@ -1447,7 +1457,7 @@ class GasSolver:
         if self._tool_sdf:
             self.boundaries.grad()
         if self.frac_tools or self.frac_particles:
-            self.face_weights.grad()  # every reader of the shares (override, the projection) is behind us
+            self.face_weights_grad()  # every reader of the shares (override, the projection) is behind us
         if particles_grad is not None and self.frac_particles:
             particles_grad()  # every reader of the particles' face fields is behind us
         self._take_carry(carry_v[0], carry_v[1], carry_v[2], carry_q)
