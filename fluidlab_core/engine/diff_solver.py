@@ -79,6 +79,8 @@ class DiffSolver(Solver):
         real, n = model.real, model.n_particles
         self.n_slots = int(n_slots)
         self.state = StateBuffer(n, model.n_tools, self.n_slots, real, needs_grad=True, n_emitters=model.n_emitters)
+        # advance_tools_grad has no adjoint of sync_real: the poses must be in the working precision here
+        assert not self.state.wide_poses, "the differentiable solver's tool poses must be in the working precision"
         # per-substep intermediates, recomputed by the backward pass
         # F_trial = (I + Δt C) F, kept for the stress kernels: computed there, it made each stress gradient kernel
         # compile 2-3× longer (Taichi's simplification grows faster than a kernel; a fixed-corotated stress
