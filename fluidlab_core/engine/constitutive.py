@@ -300,45 +300,39 @@ def von_mises_backward(F, C, prm, U, sig, V, g_Fn, g_tau):
 
 
 @ti.func
-def _liquid_backward(F, lam, g_Fn, g_tau):
-    """∂L/∂J through _liquid: Fp = max(J, 1e-6)^⅓ I and τ = λ J (J − 1) I."""
+def _liquid_backward(F, lam, g_Fn, g_tau, g_J_more, g_C):
+    """The liquids' gradients: ∂L/∂J through _liquid (Fp = max(J, 1e-6)^⅓ I, τ = λ J (J − 1) I) plus g_J_more
+    (what a model adds to τ through J) on to F by the cofactor, and g_C (what it adds through C)."""
     J = F.determinant()
-    g_J = lam * (2.0 * J - 1.0) * g_tau.trace()
+    g_J = lam * (2.0 * J - 1.0) * g_tau.trace() + g_J_more
     if J > 1e-6:
         g_J += g_Fn.trace() / 3.0 * ti.pow(J, -2.0 / 3.0)
-    return g_J
+    zero = ti.Matrix.zero(float, 3, 3)
+    return g_J * cofactor(F), g_C, zero, zero, zero
 
 
 @backward_of("liquid")
 @ti.func
 def liquid_backward(F, C, prm, U, sig, V, g_Fn, g_tau):
-    g_J = _liquid_backward(F, prm.lam, g_Fn, g_tau)
-    zero = ti.Matrix.zero(float, 3, 3)
-    return g_J * cofactor(F), zero, zero, zero, zero
+    return _liquid_backward(F, prm.lam, g_Fn, g_tau, 0.0, ti.Matrix.zero(float, 3, 3))
 
 
 @backward_of("viscous_liquid")
 @ti.func
 def viscous_liquid_backward(F, C, prm, U, sig, V, g_Fn, g_tau):
     """+ τ_v = η J D, D = C + Cᵀ − ⅔ tr(C) I."""
-    J = F.determinant()
     eye = ti.Matrix.identity(float, 3)
     D = C + C.transpose() - (2.0 / 3.0) * C.trace() * eye
-    g_J = _liquid_backward(F, prm.lam, g_Fn, g_tau) + prm.eta * (g_tau * D).sum()
-    g_C = prm.eta * J * (g_tau + g_tau.transpose() - (2.0 / 3.0) * g_tau.trace() * eye)
-    zero = ti.Matrix.zero(float, 3, 3)
-    return g_J * cofactor(F), g_C, zero, zero, zero
+    g_C = prm.eta * F.determinant() * (g_tau + g_tau.transpose() - (2.0 / 3.0) * g_tau.trace() * eye)
+    return _liquid_backward(F, prm.lam, g_Fn, g_tau, prm.eta * (g_tau * D).sum(), g_C)
 
 
 @backward_of("damped_liquid")
 @ti.func
 def damped_liquid_backward(F, C, prm, U, sig, V, g_Fn, g_tau):
     """+ τ_b = ζ J tr(C) I."""
-    J = F.determinant()
-    g_J = _liquid_backward(F, prm.lam, g_Fn, g_tau) + prm.zeta * C.trace() * g_tau.trace()
-    g_C = (prm.zeta * J * g_tau.trace()) * ti.Matrix.identity(float, 3)
-    zero = ti.Matrix.zero(float, 3, 3)
-    return g_J * cofactor(F), g_C, zero, zero, zero
+    g_C = (prm.zeta * F.determinant() * g_tau.trace()) * ti.Matrix.identity(float, 3)
+    return _liquid_backward(F, prm.lam, g_Fn, g_tau, prm.zeta * C.trace() * g_tau.trace(), g_C)
 
 
 @backward_of("rigid")
