@@ -538,8 +538,9 @@ class GasSolver:
             self._face_weights(d)
 
     def face_weights_grad(self):
-        """The reverse of face_weights: one reverse kernel an axis (as one kernel for the three axes, its reverse
-        compiled in 49 s a scene: Taichi's simplification grows faster than the kernel)."""
+        """The reverse of face_weights: one reverse kernel an axis. As one kernel for the three axes its reverse
+        compiled in 50 s, as three in 32 s together (tests/test_gas_fractions.py's fractional-tool gradient scene;
+        docs/gas.md): Taichi's simplification grows faster than the kernel."""
         for d in (2, 1, 0):
             self._face_weights.grad(d)
 
