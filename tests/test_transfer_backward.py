@@ -7,7 +7,9 @@ differences of the forward function it differentiates, in several random directi
 relative. These tests used Taichi's reverse mode of the same forward kernels as the reference, which agreed to
 1e-10 but took 202 s of the suite's time to compile (the scatter's reverse alone 153 s; 2026-12-06, a cold
 cache); the differences compile only the forward kernels. The SVD's backward (engine/svd.py), which Taichi
-cannot derive (ti.svd iterates), is checked the same way.
+cannot derive (ti.svd iterates), is checked the same way, and so are the other hand-written backwards the
+differentiable solver uses instead of Taichi's reverse mode: the tools' pose advance (tools.advance_pose_adjoint)
+and each built-in constitutive model's (constitutive.backward_of).
 """
 import numpy as np
 import pytest
