@@ -8,7 +8,8 @@ Taichi: simulators built before the reset are invalid and raise `RuntimeError` w
 
 Fast compilation (`fast_compile=True`, or the environment variable FLUIDLAB_FAST_COMPILE=1, which processes
 started from this one inherit): the solvers' forward kernels (the fast solver's step, the differentiable
-solver's forward substep, the gas solver's step: `compiled_fast`) compile at Taichi's `opt_level` 0, which skips
+solver's forward substep and its hand-written backwards, the gas solver's step: `compiled_fast`,
+`fast_compilation`) compile at Taichi's `opt_level` 0, which skips
 most of its own IR optimisation passes, where compile time goes. The physics is the same code; they compile
 several times faster and run somewhat slower (`bench/fast_compile.py`, `bench/results/fast_compile_cpu.txt`).
 Everything else keeps level 1: Taichi's automatic differentiation needs it (a `.grad` kernel would raise the
@@ -168,23 +169,32 @@ def _lighter_source_positions(ti) -> None:
     ctx._fluidlab_positions = True
 
 
+@contextlib.contextmanager
+def fast_compilation():
+    """Under fast compilation, the kernels that compile inside this block (at their first launch) compile at
+    Taichi's opt_level 0 (see the module's docstring); otherwise nothing changes. For forward kernels and the
+    hand-written backwards, which are plain kernels; not for Taichi's reverse-mode (`.grad`) kernels."""
+    if _config is None or not _config.fast_compile:
+        yield
+        return
+    from taichi.lang import impl
+
+    cfg = impl.current_cfg()
+    saved = cfg.opt_level
+    cfg.opt_level = 0
+    try:
+        yield
+    finally:
+        cfg.opt_level = saved
+
+
 def compiled_fast(method):
-    """Decorator for the solvers' forward methods: under fast compilation, the kernels they launch compile at
-    Taichi's opt_level 0 (see the module's docstring); otherwise nothing changes."""
+    """Decorator for the solvers' forward methods: the kernels they launch compile inside `fast_compilation`."""
 
     @functools.wraps(method)
     def wrapper(*args, **kwargs):
-        if _config is None or not _config.fast_compile:
+        with fast_compilation():
             return method(*args, **kwargs)
-        from taichi.lang import impl
-
-        cfg = impl.current_cfg()
-        saved = cfg.opt_level
-        cfg.opt_level = 0
-        try:
-            return method(*args, **kwargs)
-        finally:
-            cfg.opt_level = saved
 
     return wrapper
 

@@ -37,7 +37,7 @@ from fluidlab_core.engine import svd as svd3
 from fluidlab_core.engine.emitters import takes_part
 from fluidlab_core.engine.solver import Solver
 from fluidlab_core.engine.state import StateBuffer
-from fluidlab_core.runtime import compiled_fast
+from fluidlab_core.runtime import compiled_fast, fast_compilation
 
 
 def slot_bytes(model) -> int:
@@ -174,17 +174,24 @@ class DiffSolver(Solver):
         self._forward(s, False)
         if self.rigid is not None:
             self.rigid.backward(self.state, s + 1)
-        self.g2p_grad(s)
-        if self.model.n_tools:
-            self.advance_tools_grad(s)
+        # the hand-written backwards are plain kernels, which compile fast under fast compilation like the forward
+        # ones; Taichi's reverse-mode kernels (.grad) keep the default level (runtime.fast_compilation)
+        self.g2p_project.grad(s)
+        with fast_compilation():
+            self.g2p_gather_grad(s)
+            if self.model.n_tools:
+                self.advance_tools_grad(s)
         self.grid_update.grad(s)
-        self.p2g_grad_kernel(s)
+        with fast_compilation():
+            self.p2g_grad_kernel(s)
         for k in reversed(range(len(self.model.constitutive))):
             if self.model.constitutive[k].backward is not None:
-                self.stress_backward(s, k)
+                with fast_compilation():
+                    self.stress_backward(s, k)
             else:
                 self.stress.grad(s, k)
-        self.svd_grad(s)
+        with fast_compilation():
+            self.svd_grad(s)
 
     @ti.kernel
     def forward_kernel(self, s: ti.i32, keep: ti.template()):
@@ -339,7 +346,7 @@ class DiffSolver(Solver):
     @ti.kernel
     def g2p_project(self, s: ti.i32):
         """The projection alone, of the stored gather (plus x_pre, v_pre, C_pre, zero, whose gradients Taichi's
-        reverse of this kernel fills: g2p_grad). Without rigid bodies C of slot s + 1 is the gathered C, which
+        reverse of this kernel fills: substep_grad). Without rigid bodies C of slot s + 1 is the gathered C, which
         the forward wrote, and its gradient goes straight to the gather's backward."""
         for p in range(self.n_particles):
             xp, vp = grid.project(self.model, self.store_x_pre[s, p] + self.x_pre[p],
@@ -443,6 +450,3 @@ class DiffSolver(Solver):
         # one thread per particle: a plain read-modify-write (`+=` on a field is an atomic add)
         self.state.x.grad[s, p] = self.state.x.grad[s, p] + gx + gf
 
-    def g2p_grad(self, s: int):
-        self.g2p_project.grad(s)
-        self.g2p_gather_grad(s)
