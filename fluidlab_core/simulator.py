@@ -73,8 +73,8 @@ class Simulator:
     def _check_alive(self):
         current = runtime.current()
         if current is None or current.generation != self._config.generation:
-            raise RuntimeError("this simulator was built before fluidlab_core.init() reset Taichi; build the scene "
-                               "again")
+            raise RuntimeError("this simulator was built before fluidlab_core.init() or fluidlab_core.runtime.reset() "
+                               "reset Taichi, and its fields are gone; build the scene again")
 
     def step(self, action=None, n: int = 1, emit=None) -> dict:
         """Advance `n` steps of dt seconds each, holding the tools' velocity `action` over every step.
@@ -338,6 +338,7 @@ class Simulator:
         names = [spec.name for spec in self.tool_specs]
         if name not in names:
             raise KeyError(f"no tool named {name!r}; tools: {', '.join(names) or 'none'}")
+        self._check_alive()
         position, rotation = self.state.read_tools(0)
         i = names.index(name)
         return T.pose_of(position[i], rotation[i])
@@ -346,12 +347,14 @@ class Simulator:
         """What a loss sees of the current state (losses.StepState: float64 positions, velocities, tool poses)."""
         from fluidlab_core.losses import StepState
 
+        self._check_alive()
         x, v, tp, tR = self.state.read_steps([0])
         return StepState(self.step_count, self.time, x[0].astype(np.float64), v[0].astype(np.float64), tp[0], tR[0],
                          self.active_rows())
 
     def check_finite(self):
         """Raise NonFiniteStateError naming the field, step and particle if any state is NaN or infinite."""
+        self._check_alive()
         fields, particle = self.state.nonfinite(0)
         if fields:
             self._raise_nonfinite(fields, particle, self.step_count)
@@ -385,17 +388,21 @@ class Simulator:
     def positions(self, h=None) -> np.ndarray:
         """(N, 3) particle positions (m) of body `h` (all bodies if None): the particles that take part, so of a
         body an emitter is filling, those that have left its nozzle (`active_rows`)."""
+        self._check_alive()
         return self._rows(self.state.x.to_numpy()[0], h)
 
     def velocities(self, h=None) -> np.ndarray:
         """(N, 3) particle velocities (m/s)."""
+        self._check_alive()
         return self._rows(self.state.v.to_numpy()[0], h)
 
     def deformation_gradients(self, h=None) -> np.ndarray:
+        self._check_alive()
         return self._rows(self.state.F.to_numpy()[0], h)
 
     def volumes(self, h=None) -> np.ndarray:
         """Current particle volumes V⁰·det F (m³)."""
+        self._check_alive()
         rest = self._rows(self.model.rest_volume.to_numpy(), h)
         return rest * np.linalg.det(self.deformation_gradients(h))
 
@@ -403,6 +410,7 @@ class Simulator:
         """(N, 3, 3) Cauchy stress σ of each particle (Pa), from its constitutive model at its current F and C. With
         Scene(pressure="projection") a liquid's pressure is the projection's, on the grid, and not in these (its F
         stays I: only its viscous part shows)."""
+        self._check_alive()
         return self._rows(self.solver.stresses(self.state), h)
 
     def pressures(self, h=None) -> np.ndarray:
@@ -417,6 +425,7 @@ class Simulator:
         return colors
 
     def masses(self, h=None) -> np.ndarray:
+        self._check_alive()
         return self._rows(self.model.mass.to_numpy(), h)
 
     # --- pictures ---------------------------------------------------------------------------------------
@@ -521,6 +530,7 @@ class Simulator:
     def get_state(self) -> State:
         """A copy of the whole state: particles (x, v, C, F in the solver's precision), tool poses (float64) and
         the step count."""
+        self._check_alive()
         return self.state.read(0, step=self.step_count)
 
     def set_state(self, state: State):
@@ -529,6 +539,7 @@ class Simulator:
         not bit for bit."""
         if not isinstance(state, State):
             raise TypeError(f"set_state takes a State (from get_state()), got {type(state).__name__}")
+        self._check_alive()
         state.check_shapes(self.n_particles, len(self.tool_specs), self.model.n_emitters)
         self.state.write(0, state)
         if getattr(self.solver, "proj", None) is not None:

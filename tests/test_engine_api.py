@@ -77,6 +77,23 @@ def test_fast_compilation_lowers_the_level_only_around_the_solvers_forward(monke
         fl.init(arch="cpu", precision="f32", seed=0)
 
 
+def test_a_simulator_built_before_a_reset_says_so_when_used():
+    """After a reset of Taichi (fluidlab_core.runtime.reset, or init with other arguments) a simulator built before
+    it raises RuntimeError naming the reset when stepped, read or restored: its fields are gone (reading them gave
+    Taichi's errors about fields of nonsense dimensions)."""
+    scene, water = _small_scene()
+    sim = scene.build()
+    state = sim.get_state()
+    assert sim.positions(water).shape == (state.x.shape[0], 3)
+    fl.runtime.reset()
+    uses = {"step": lambda: sim.step(), "positions": lambda: sim.positions(water), "velocities": sim.velocities,
+            "get_state": sim.get_state, "set_state": lambda: sim.set_state(state), "check_finite": sim.check_finite}
+    for name, use in uses.items():
+        with pytest.raises(RuntimeError, match=r"runtime.reset\(\) reset Taichi.*build the scene again"):
+            use()
+            pytest.fail(f"{name} ran on a simulator from before the reset")
+
+
 def test_particle_mass_and_volume_follow_the_sampling_density():
     """Mass = ρ × shape volume for shapes that fit the lattice; curved shapes within a few percent."""
     scene, water = _small_scene(substeps=25)
