@@ -16,15 +16,6 @@ tests/file_seconds.json, measured from a cold Taichi cache as CI runs it; a file
 listed files' median. `bash bench/suite_time.sh cold` refreshes the table (pytest's --record-file-seconds: the
 files a run ran are written at its end, the others kept).
 
-Taichi reset (`taichi_fresh`, `taichi_fresh_file`): Taichi's offline cache finds a compiled kernel by its code and
-the identities of the fields it touches, which count up over a process (docs/engine.md, "What the kernel cache keys
-on"), so a scene compiled again whenever other fields had been allocated before it. Each test of a file whose tests
-share nothing built now starts from a reset (fluidlab_core.runtime.reset, about 0.2 s), so that a scene built the
-same way in another test, in this process or another, loads its kernels from the cache; a file whose tests share a
-fixture of a wider scope or a module cache of simulators (SHARES_SIMULATORS = True) is reset once, at its start.
-Measured from an empty cache (2026-12-07, six files of solids, liquids, statics and tools, two processes): 213 s of
-first kernel launches before, 193 s after; 372 s wall before, 353 s after.
-
 Markers: `cpu_only` for tests of the CPU's own code paths (per-thread grid copies, thread counts), skipped on
 CUDA; `cuda` for tests that need a GPU, skipped on the CPU.
 """
@@ -46,7 +37,6 @@ os.environ.setdefault("FLUIDLAB_FAST_COMPILE", "1")
 TESTS = Path(__file__).parent
 FILE_SECONDS = TESTS / "file_seconds.json"  # {file relative to tests/: seconds of its setup, calls and teardown}
 _recorded: dict[str, float] = {}
-_SHARING: set[str] = set()  # test files whose tests may use what another of their tests built (_shares_built)
 _root = [Path.cwd()]  # pytest's rootdir, which node ids are relative to (set by pytest_configure)
 
 
@@ -87,7 +77,6 @@ def pytest_collection_modifyitems(config, items):
     for i, item in enumerate(items):
         first.setdefault(_test_file(item.path), i)
     rank = {id(item): i for i, item in enumerate(items)}
-    _SHARING.update(_test_file(item.path) for item in items if _shares_built(item))
     items.sort(key=lambda it: (-seconds.get(_test_file(it.path), default), first[_test_file(it.path)], rank[id(it)]))
 
 
@@ -115,39 +104,6 @@ def init(precision: str = "f32"):
 @pytest.fixture(scope="session", autouse=True)
 def taichi_backend():
     init("f32")
-    yield
-
-
-def _shares_built(item) -> bool:
-    """Whether a test may use what another test of its file built: a fixture of the suite's of a wider scope than the
-    test's own (other than the Taichi set-up's below), or its module's cache of built simulators (a module-level SHARES_SIMULATORS = True)."""
-    if getattr(getattr(item, "module", None), "SHARES_SIMULATORS", False):
-        return True
-    info = getattr(item, "_fixtureinfo", None)
-    for name, defs in (info.name2fixturedefs.items() if info else ()):
-        if not defs or name in ("taichi_backend", "taichi_fresh_file") or defs[-1].scope == "function":
-            continue
-        origin = Path(getattr(defs[-1].func, "__code__", None).co_filename if hasattr(defs[-1].func, "__code__")
-                      else "")
-        if TESTS in origin.resolve().parents:  # this suite's own (pytest's tmp_path_factory and the like hold none)
-            return True
-    return False
-
-
-@pytest.fixture(scope="module", autouse=True)
-def taichi_fresh_file(request):
-    """Taichi reset at the start of a test file whose tests share what one of them built, before its fixtures
-    build anything (module docstring, "Taichi reset")."""
-    if _test_file(request.path) in _SHARING:
-        fluidlab_core.runtime.reset()
-    yield
-
-
-@pytest.fixture(autouse=True)
-def taichi_fresh(request):
-    """Taichi reset before each test of a file whose tests share nothing built (module docstring, "Taichi reset")."""
-    if _test_file(request.path) not in _SHARING:
-        fluidlab_core.runtime.reset()
     yield
 
 

@@ -11,7 +11,6 @@ from fluidlab_core.tasks import air_circulation as air
 from tests.conftest import report
 
 NAME = "AirCirculation"
-SHARES_SIMULATORS = True  # the tests share the task built in _TASK (tests/conftest.py, taichi_fresh)
 _TASK: dict = {}
 
 

@@ -18,7 +18,6 @@ TASKS = ["LatteArtStir", "Mixing", "GatheringEasy", "GatheringHard", "LatteArtPo
          "IceCreamDynamic", "Transporting", "Pouring"]  # the particle (MPM) tasks; the gas task: test_air_circulation.py
 GAS_TASKS = ["AirCirculation"]
 GOAL_TASKS = ["LatteArtStir", "LatteArtPour", "IceCreamStatic", "IceCreamDynamic"]  # scripted goal patterns
-SHARES_SIMULATORS = True  # the tests share the tasks built in _SMALL (tests/conftest.py, taichi_fresh)
 _SMALL: dict = {}
 
 
