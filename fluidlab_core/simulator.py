@@ -376,9 +376,12 @@ class Simulator:
                 raise KeyError(f"no particle body named {h!r}; bodies: {', '.join(self.handles)}") from None
         return h
 
-    def _rows(self, data, h):
-        """The rows of body h (all bodies if None) that take part: a body being emitted has the particles that
+    def _rows(self, read, h):
+        """The rows of body h (all bodies if None) that take part, of the per-particle array that read() returns
+        (read after the check that the simulator outlived no reset): a body being emitted has the particles that
         have left its nozzle."""
+        self._check_alive()
+        data = read()
         rows = np.arange(self.n_particles)[slice(None) if h is None else self.handle(h).slice]
         active = self.active_rows()
         if active is not None:
@@ -388,30 +391,25 @@ class Simulator:
     def positions(self, h=None) -> np.ndarray:
         """(N, 3) particle positions (m) of body `h` (all bodies if None): the particles that take part, so of a
         body an emitter is filling, those that have left its nozzle (`active_rows`)."""
-        self._check_alive()
-        return self._rows(self.state.x.to_numpy()[0], h)
+        return self._rows(lambda: self.state.x.to_numpy()[0], h)
 
     def velocities(self, h=None) -> np.ndarray:
         """(N, 3) particle velocities (m/s)."""
-        self._check_alive()
-        return self._rows(self.state.v.to_numpy()[0], h)
+        return self._rows(lambda: self.state.v.to_numpy()[0], h)
 
     def deformation_gradients(self, h=None) -> np.ndarray:
-        self._check_alive()
-        return self._rows(self.state.F.to_numpy()[0], h)
+        return self._rows(lambda: self.state.F.to_numpy()[0], h)
 
     def volumes(self, h=None) -> np.ndarray:
         """Current particle volumes V⁰·det F (m³)."""
-        self._check_alive()
-        rest = self._rows(self.model.rest_volume.to_numpy(), h)
+        rest = self._rows(self.model.rest_volume.to_numpy, h)
         return rest * np.linalg.det(self.deformation_gradients(h))
 
     def stresses(self, h=None) -> np.ndarray:
         """(N, 3, 3) Cauchy stress σ of each particle (Pa), from its constitutive model at its current F and C. With
         Scene(pressure="projection") a liquid's pressure is the projection's, on the grid, and not in these (its F
         stays I: only its viscous part shows)."""
-        self._check_alive()
-        return self._rows(self.solver.stresses(self.state), h)
+        return self._rows(lambda: self.solver.stresses(self.state), h)
 
     def pressures(self, h=None) -> np.ndarray:
         """Cauchy pressure −tr(σ)/3 of each particle (Pa), from `stresses` (so not the projection's pressure)."""
@@ -425,8 +423,7 @@ class Simulator:
         return colors
 
     def masses(self, h=None) -> np.ndarray:
-        self._check_alive()
-        return self._rows(self.model.mass.to_numpy(), h)
+        return self._rows(self.model.mass.to_numpy, h)
 
     # --- pictures ---------------------------------------------------------------------------------------
     def render(self, path=None, view="iso", size=(800, 600), title=None, bodies=None, gas: bool = True,
