@@ -6,7 +6,7 @@
     fluidlab benchmark ...            (the same)
 
 What a run is. One optimisation of one task by one method (optim.METHODS: the paper's six by default, sac, ppo
-and pods needing the `rl` extra, and dp-window, ours, when named; ABLATIONS below: DP with techniques switched
+and pods needing the `rl` extra, and dp-window, cma-es-free and dp-free, ours, when named; ABLATIONS below: DP with techniques switched
 off) from one seed, with a budget of `--rollouts` × the task's horizon simulated steps. It is the same for
 every method: a DP iteration over r steps counts r, an RL environment step 1, a PODS iteration 2 rollouts;
 DP's backward pass costs more wall time, which is measured too. A CMA-ES run must complete at least
@@ -33,7 +33,7 @@ machine needs only this package installed. Without Ray, runs go to a pool of `--
 
 The liquid. `--pressure projection` runs the tasks on the projected, incompressible liquid (engine/projection.py,
 which floats bodies at Archimedes' depth) instead of the default weakly compressible one: forward only, so the
-gradient methods (dp, dp-h, pods, dp-window and DP's ablations) are refused there with the reason, and CMA-ES, SAC
+gradient methods (dp, dp-h, pods, dp-window, dp-free and DP's ablations) are refused there with the reason, and CMA-ES, SAC
 and PPO run. Its runs' keys and file names end in 'projection', their records say `pressure`, the default folder is
 bench/results/benchmark_SIZE_projection, and `--reevaluate` replays each run on the liquid it ran on.
 
@@ -703,7 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tasks", nargs="+", default=None, help="default: every registered task")
     ap.add_argument("--methods", nargs="+", default=list(PAPER_METHODS), choices=[*METHODS, *ABLATIONS],
-                    help="default: the paper's six (dp-window, ours, when named); the DP ablations run DP without techniques: "
+                    help="default: the paper's six (dp-window, cma-es-free and dp-free, ours, when named); the DP ablations run DP without techniques: "
                     + ", ".join(f"{k} (without {' and '.join(v)})" for k, v in ABLATIONS.items()))
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--rollouts", type=int, default=150, help="budget per run in rollouts of the task's horizon "

@@ -262,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "with NAME.report.json beside it. Methods: " + "; ".join(
                                        f"{m}: {DESCRIPTIONS[m]}" for m in METHODS) + ".")
     p.add_argument("task", help="task name (fluidlab list)")
-    p.add_argument("--method", default="dp", choices=METHODS, help="dp (default), dp-h, cma-es, sac, ppo, pods, dp-window or cma-es-free (see above)")
+    p.add_argument("--method", default="dp", choices=METHODS, help="dp (default), dp-h, cma-es, sac, ppo, pods, dp-window, cma-es-free or dp-free (see above)")
     p.add_argument("--budget", type=int, default=None,
                    help="simulated steps; a rollout of the horizon costs the horizon (default 12 rollouts)")
     p.add_argument("--seed", type=int, default=0)

@@ -226,3 +226,34 @@ def test_the_temporally_expanding_region_grows_to_the_whole_horizon(gathering):
     assert np.diff([0] + steps).tolist() == regions
     assert all(not np.isfinite(p.best_loss) for p, r in zip(seen, regions) if r < task.horizon and
                all(q < task.horizon for q in regions[: seen.index(p) + 1]))
+
+
+def test_dp_free_descends_over_knots_that_span_the_whole_horizon(gathering):
+    """"dp-free": DP (its techniques on) over cma-es-free's knots, 8 per axis over the whole horizon, where the task
+    has the paper's periodic stroke. On GatheringEasy its parametrisation is cma-es-free's (18 parameters: 8 knots
+    on each of the 2 action axes and the paddle's start), its region starts at a quarter of the horizon (25, 50,
+    75, 100 steps in a budget of 2.5 rollouts: 250 steps), the paddle need not come back to where it began (under
+    the stroke it does every 20 steps), and its gradient steps move the knots: each knot's change over the run is
+    what Adam's steps allow (each under lr (1 − β1)/√(1 − β2) = 3.16 lr, Kingma & Ba 2015, §2.1, with lr 0.1 of the
+    tool's top speed), and at least one moved by over half of lr. It records its method in the trajectory and in the DP state it hands out (so that a snapshot of a dp
+    run is not taken for it)."""
+    task = gathering
+    seen, states = [], []
+    traj = optim.optimise(task, "dp-free", budget=250, seed=2,
+                          callback=lambda p: seen.append(p) or states.append(p.state()))
+    settings = traj.metadata["settings"]
+    assert traj.method == "dp-free" and settings["parametrisation"] == "8 knots per axis, piecewise linear"
+    assert [p.region for p in seen] == [25, 50, 75, 100] and traj.metadata["steps_used"] == 250
+    assert settings["soft_contact"] and settings["expanding_region"] and settings["attraction"]
+    state = states[-1]
+    assert state["method"] == "dp-free" and state["n_params"] == 8 * 2 + 2
+    moved = np.abs(state["theta"] - states[0]["theta"])[:16]  # over the last 3 of the 4 Adam steps
+    lr = 0.1 * task.max_tool_speed  # Adam's step on the knots (DPOptions.learning_rate)
+    print(f"\ndp-free on GatheringEasy: regions {[p.region for p in seen]}, largest knot change over the last 3 "
+          f"steps {moved.max() / lr:.3g} lr")
+    assert 0.5 * lr < moved.max() <= 3 * lr * 0.1 / np.sqrt(1e-3) * (1 + 1e-6)
+    assert np.isfinite(traj.metadata["final_loss"]) and len(traj.loss_history) == 1
+    twists = traj.twists
+    assert np.abs(twists.sum(axis=0)).max() > 0.01 * float(np.abs(twists).max()) * task.horizon
+    with pytest.raises(ValueError, match="needs the simulator's gradients"):
+        optim.optimise(tasks.make("GatheringEasy", "small", pressure="projection"), "dp-free", budget=100)

@@ -4,10 +4,11 @@ Methods: "dp" (gradients with FluidLab's techniques: soft contact, expanding reg
 within fluid bodies; optim/dp.py), "dp-h" (the same loop without them), "cma-es" (optim/cmaes.py), and the
 model-free RL baselines "sac" and "ppo" (Stable-Baselines3 on the Gymnasium environment; optim/rl.py), and "pods"
 (a policy network improved with the simulator's gradients; optim/pods.py), the paper's six (PAPER_METHODS); sac,
-ppo and pods need the `rl` extra (torch). And one of our own, "dp-window": DP over short windows of the horizon
-for tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is a mean over steps), and
-"cma-es-free": CMA-ES over knots spread over the whole horizon where a task has the paper's periodic stroke
-(Gathering), which held CMA-ES back on the projected liquid (docs/benchmark.md). Every method
+ppo and pods need the `rl` extra (torch). And our own: "dp-window", DP over short windows of the horizon for
+tasks whose long-horizon gradient explodes (optim/dp.py; tasks whose loss is a mean over steps); "cma-es-free",
+CMA-ES over knots spread over the whole horizon where a task has the paper's periodic stroke (Gathering), which
+held CMA-ES back on both liquids (docs/benchmark.md); and "dp-free", DP with its techniques over the same free
+knots, to tell whether the stroke or the method held DP back there. Every method
 - takes a budget in simulated steps (one rollout of the whole horizon costs `task.horizon`),
 - takes a seed and is reproducible with it (the same seed gives the same trajectory, up to the order of
   floating-point sums in multithreaded CPU kernels),
@@ -25,10 +26,10 @@ import numpy as np
 from fluidlab_core.optim.progress import Progress, Result
 
 PAPER_METHODS = ("dp", "dp-h", "cma-es", "sac", "ppo", "pods")
-METHODS = (*PAPER_METHODS, "dp-window", "cma-es-free")
+METHODS = (*PAPER_METHODS, "dp-window", "cma-es-free", "dp-free")
 CMA_ES_METHODS = ("cma-es", "cma-es-free")  # CMA-ES over the task's parametrisation, and over free knots
-RESUMABLE = ("dp", "dp-h")  # methods that can continue from a saved state (DP with techniques off too)
-GRADIENT_METHODS = ("dp", "dp-h", "pods", "dp-window")  # methods that need the differentiable simulator
+RESUMABLE = ("dp", "dp-h", "dp-free")  # methods that can continue from a saved state (DP with techniques off too)
+GRADIENT_METHODS = ("dp", "dp-h", "pods", "dp-window", "dp-free")  # methods that need the differentiable simulator
 DESCRIPTIONS = {
     "dp": "gradient descent through the differentiable simulator with the paper's techniques: soft tool contact, "
           "a temporally expanding loss region, an attraction of the tool to the fluid it must move, and gradient "
@@ -41,6 +42,8 @@ DESCRIPTIONS = {
             "two rollouts per iteration",
     "cma-es-free": "CMA-ES over knots spread over the whole horizon where the task has the paper's periodic stroke "
                    "(Gathering): the tool may end anywhere, as the RL policies' may; the same as cma-es elsewhere",
+    "dp-free": "dp over the knots of cma-es-free (8 per axis over the whole horizon) where the task has the paper's "
+               "periodic stroke (Gathering); the same as dp elsewhere",
     "dp-window": "gradient descent over short windows of the horizon in turn (each from the state the current "
                  "actions reach, its gradient truncated there), for long horizons whose whole gradient explodes; "
                  "tasks whose loss is a mean over steps (AirCirculation, Gathering, Transporting)",
@@ -99,6 +102,7 @@ def optimise(task, method: str, budget: int, seed: int = 0, callback=None, max_i
                            min_generations=min_generations, method=method, free=method == "cma-es-free")
     else:
         opts = (dp.DPOptions(**{w: False for w in without}) if method == "dp" else
+                dp.DPOptions(free_knots=True) if method == "dp-free" else
                 dp.DPOptions.windowed(task) if method == "dp-window" else dp.DPOptions.plain())
         result = dp.run(task, int(budget), int(seed), callback, opts, method=method, max_iterations=max_iterations,
                         resume=resume)

@@ -25,6 +25,12 @@ The techniques of Xian et al. (2023, §5), each switchable:
   term shrinks by itself as the liquid leaves).
 DP-H is the same loop with hard contact, the full horizon from the start, and neither attraction nor sharing.
 
+DP over free knots ("dp-free", our own): DP with its techniques over the parametrisation of "cma-es-free" where a
+task has the paper's periodic stroke (Gathering: 8 knots per axis, piecewise linear over the whole horizon, so
+that the tool may end anywhere; `DPOptions.free_knots`), and plain DP elsewhere. The stroke held CMA-ES back on
+Gathering (README); this tells whether it held DP back too. Its region starts at a quarter of the horizon, as on
+a task without a stroke.
+
 DP over windows ("dp-window", our own, for long horizons whose gradient explodes backwards in time): the horizon
 is cut into windows of w steps (`Task.gradient_window`, default a quarter of the horizon). An iteration runs
 the current actions forward without gradients to the start s of one window, then differentiates the loss of
@@ -57,6 +63,8 @@ import numpy as np
 from fluidlab_core.optim import params as P
 from fluidlab_core.optim.progress import Progress, Result
 
+FREE_KNOTS = 8  # per axis, "dp-free" (cma-es-free's number, optim/cmaes.py)
+
 
 @dataclass
 class DPOptions:
@@ -68,6 +76,7 @@ class DPOptions:
     initial_noise: float = 0.3  # std of the initial actions, as a fraction of max_tool_speed
     optimise_pose: bool = True
     gradient_window: int | None = None  # steps per window ("dp-window"); None: the region scheme above
+    free_knots: bool = False  # "dp-free": free knots over the horizon instead of a periodic task's stroke
 
     @classmethod
     def plain(cls) -> "DPOptions":
@@ -98,7 +107,7 @@ class _Adam:
 
 def _start(task, seed: int, opts: DPOptions):
     """The parametrisation, the seeded starting parameters, Adam's step per parameter, and the gradient simulator."""
-    par = P.default(task)
+    par = P.knots(task, FREE_KNOTS, free=True) if opts.free_knots and task.periodic else P.default(task)
     rng = np.random.default_rng(seed)
     theta = np.zeros(par.size)
     start = task.initial_actions()
@@ -156,7 +165,7 @@ def run(task, budget: int, seed: int, callback=None, options: DPOptions | None =
     horizon = task.horizon
     expanding = opts.expanding_region and task.expanding_region
     region = max(1, int(np.ceil(0.25 * horizon))) if expanding else horizon
-    if task.periodic:
+    if task.periodic and not opts.free_knots:  # at least one period of the stroke
         region = max(region, min(horizon, sum(task.periodic)))
     attraction = task.attraction(0.0) if opts.attraction else None
     sharing = task.gradient_sharing(0.0) if opts.gradient_sharing else None
