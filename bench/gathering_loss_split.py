@@ -12,9 +12,11 @@ floating bodies), on the projection it floats. For each task, liquid and traject
 - still: the paddle held still;
 - dp (state): DP seed 0 on the default (bench/results/benchmark_<size>/, the 2026-11-27 sweep; shipped until
   2026-12-06);
-- cma-es-free (state): the shipped trajectory, CMA-ES over free knots on the default, on the fixed statics
-  (trajectories/<task>/<task>_cma-es-free_seed<k>_<size>.json, the best seed of
-  bench/results/benchmark_<size>_statics/);
+- cma-es-free (state): CMA-ES over free knots on the default, on the fixed statics, its best seed
+  (bench/results/benchmark_<size>_statics/, seed 1 on GatheringEasy, 0 on GatheringHard: shipped until 2026-12-07
+  for GatheringHard, shipped still for GatheringEasy);
+- dp-free (state): DP over the same free knots on the default, on the fixed statics, seed 0
+  (bench/results/benchmark_<size>_statics/; GatheringHard's ships since 2026-12-07);
 - cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default, on the fixed statics
   (bench/results/benchmark_<size>_statics/);
 - cma-es, cma-es-free, ppo, sac (projection): their seed 0 on the projection (bench/results/benchmark_<size>_projection/,
@@ -44,9 +46,10 @@ def trajectories(task: str, size: str) -> dict:
         "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
         / f"{task}_cma-es_seed0_{size}.json",
     }
-    shipped = sorted((ROOT / "trajectories" / task).glob(f"{task}_cma-es-free_seed*_{size}.json"))
-    if shipped:
-        paths["cma-es-free (state)"] = shipped[0]
+    best_free = {"GatheringEasy": 1, "GatheringHard": 0}.get(task, 0)
+    statics = ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
+    paths["cma-es-free (state)"] = statics / f"{task}_cma-es-free_seed{best_free}_{size}.json"
+    paths["dp-free (state)"] = statics / f"{task}_dp-free_seed0_{size}.json"
     for method in ("cma-es", "cma-es-free", "ppo", "sac"):
         paths[f"{method} (projection)"] = (ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories"
                                            / task / f"{task}_{method}_seed0_{size}_projection.json")
