@@ -4,7 +4,7 @@ surface every 0.1 s. Archimedes: ρ/ρ_w (0.50 by default, 0.40 for the foam).
 
     python bench/buoyancy_3d.py BODY LIQUID SECONDS [--res 24] [--drop M] [--raise M] [--every S]
         [--substep-factor F] [--bulk-factor F] [--body-bulk-factor F] [--width M] [--density KG_M3]
-        [--contact-fill F] [--jbar [affine]] [--flip A] [--pressure projection] [--open-min S] [--no-save]
+        [--contact-fill F] [--jbar [affine]] [--flip A] [--pressure projection] [--open-min S] [--theta-min T] [--no-save]
 
 BODY: rigid | elastic | foam (the tasks' floating foam, 400 kg/m³, E = 4.75 kPa). LIQUID: std (the catalogue's
 water) | task (the tasks' water, sound speed 4 m/s) | nt (the same water without tension: p = max(0,
@@ -15,7 +15,8 @@ that separate the transfers' dissipation from the sound waves', docs/engine.md);
 rigid body's bulk modulus, whose sound speed otherwise sets the substep count when the water's is lowered.
 --jbar [affine] and --flip A: the Scene's J-bar (plain or affine) and AFLIP share (engine/transfer.py).
 --pressure projection: the liquid's pressure by a projection solved with the body's motion (engine/projection.py;
-the substep count then comes from the flow's CFL); --open-min S: its OPEN_MIN (a shell node whose faces are open by
+the substep count then comes from the flow's CFL); --theta-min T: its THETA_MIN (the ghost fluid's least θ; default
+0.1), set before the build; --open-min S: its OPEN_MIN (a shell node whose faces are open by
 less than S in all is the body's; default 0.5), set before the build.
 Columns: the cube's lowest face below the far-field surface over its side (depth / b), and the share of its
 particles below that surface (share), both against the 99th percentile of the far field's particle heights
@@ -64,6 +65,8 @@ def main():
                     help="the elastic body's shear modulus (Pa; its λ is 2.8 μ, a Poisson ratio of 0.37)")
     ap.add_argument("--open-min", type=float, default=None,
                     help="engine/projection.py's OPEN_MIN for this run (default: the engine's)")
+    ap.add_argument("--theta-min", type=float, default=None,
+                    help="engine/projection.py's THETA_MIN for this run (default: the engine's, 0.1)")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     import taichi as ti
@@ -107,6 +110,11 @@ def main():
     body = M.Rigid("light_rigid", density=rho, bulk_modulus=rigid_bulk) if args.body == "rigid" else \
         common.FLOAT_FOAM if args.body == "foam" else \
         M.Elastic("light_elastic", density=rho, shear_modulus=args.elastic_mu, lame_lambda=2.8 * args.elastic_mu)
+    if args.theta_min is not None:  # the ghost fluid's clamp, read when the projection's kernels compile
+        if args.pressure != "projection":
+            raise SystemExit("--theta-min is the projection's (--pressure projection)")
+        from fluidlab_core.engine import projection
+        projection.THETA_MIN = args.theta_min
     # the scene of the physics test's floating cube (apps/validation.py), here with the bench's options
     sim, scene = validation.floating_cube_sim(args.res, body, water, drop=args.drop, width=width, level=level,
                                               side=b, lift=args.lift, substep_factor=args.substep_factor, **kw)
@@ -133,6 +141,8 @@ def main():
     fields += "".join(f", {k} {kw[k]}" for k in ("jbar", "flip", "pressure") if k in kw)
     if args.open_min is not None:
         fields += f", OPEN_MIN {args.open_min:g}"
+    if args.theta_min is not None:
+        fields += f", THETA_MIN {args.theta_min:g}"
     what = f"{args.body} cube" + (f" (μ {args.elastic_mu:g} Pa)" if args.body == "elastic" else "")
     text = "\n".join([f"{what} of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
                       f"(λ × {args.bulk_factor:g}), {fields}, "
