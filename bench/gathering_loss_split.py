@@ -12,9 +12,9 @@ floating bodies), on the projection it floats. For each task, liquid and traject
 - still: the paddle held still;
 - dp (state): DP seed 0 on the default (bench/results/benchmark_<size>/, the 2026-11-27 sweep; shipped until
   2026-12-06);
-- cma-es-free (state): CMA-ES over free knots on the default, on the fixed statics, its best seed
-  (bench/results/benchmark_<size>_statics/, seed 1 on GatheringEasy, 0 on GatheringHard: shipped until 2026-12-07
-  for GatheringHard, shipped still for GatheringEasy);
+- cma-es-free (state): CMA-ES over free knots on the default, on the fixed statics, its best seed by its final loss
+  in bench/results/benchmark_<size>_statics/runs.jsonl (seed 1 on GatheringEasy, shipped; seed 0 on GatheringHard,
+  shipped until 2026-12-07);
 - dp-free (state): DP over the same free knots on the default, on the fixed statics, seed 0
   (bench/results/benchmark_<size>_statics/; GatheringHard's ships since 2026-12-07);
 - cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default, on the fixed statics
@@ -28,6 +28,7 @@ Appends its table to the output file.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -46,10 +47,13 @@ def trajectories(task: str, size: str) -> dict:
         "cma-es (state)": ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
         / f"{task}_cma-es_seed0_{size}.json",
     }
-    best_free = {"GatheringEasy": 1, "GatheringHard": 0}.get(task, 0)
-    statics = ROOT / "bench" / "results" / f"benchmark_{size}_statics" / "trajectories" / task
-    paths["cma-es-free (state)"] = statics / f"{task}_cma-es-free_seed{best_free}_{size}.json"
-    paths["dp-free (state)"] = statics / f"{task}_dp-free_seed0_{size}.json"
+    statics = ROOT / "bench" / "results" / f"benchmark_{size}_statics"
+    runs = statics / "runs.jsonl"
+    free = [json.loads(line) for line in open(runs)] if runs.is_file() else []
+    free = [r for r in free if r["task"] == task and r["method"] == "cma-es-free" and "final_loss" in r]
+    if free:  # its best seed
+        paths["cma-es-free (state)"] = statics / min(free, key=lambda r: r["final_loss"])["trajectory"]
+    paths["dp-free (state)"] = statics / "trajectories" / task / f"{task}_dp-free_seed0_{size}.json"
     for method in ("cma-es", "cma-es-free", "ppo", "sac"):
         paths[f"{method} (projection)"] = (ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories"
                                            / task / f"{task}_{method}_seed0_{size}_projection.json")

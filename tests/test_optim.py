@@ -235,8 +235,8 @@ def test_dp_free_descends_over_knots_that_span_the_whole_horizon(gathering):
     75, 100 steps in a budget of 2.5 rollouts: 250 steps), the paddle need not come back to where it began (under
     the stroke it does every 20 steps), and its gradient steps move the knots: each knot's change over the run is
     what Adam's steps allow (each under lr (1 − β1)/√(1 − β2) = 3.16 lr, Kingma & Ba 2015, §2.1, with lr 0.1 of the
-    tool's top speed), and at least one moved by over half of lr. It records its method in the trajectory and in the DP state it hands out (so that a snapshot of a dp
-    run is not taken for it)."""
+    tool's top speed), and at least one moved by over half of lr. It records its method in the trajectory and in the
+    DP state it hands out (so that a snapshot of a dp run is not taken for it)."""
     task = gathering
     seen, states = [], []
     traj = optim.optimise(task, "dp-free", budget=250, seed=2,

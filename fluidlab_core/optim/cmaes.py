@@ -29,13 +29,13 @@ def default_population(n: int) -> int:
     return 4 + int(3 * np.log(n))
 
 
-def search_size(task, n_knots: int = 8) -> int:
+def search_size(task, n_knots: int = P.KNOTS) -> int:
     """The number of parameters CMA-ES searches for `task` (the knots parametrisation above; the same over free
     knots)."""
     return P.knots(task, n_knots).size
 
 
-def population_for(task, budget: int, min_generations: int, n_knots: int = 8) -> int:
+def population_for(task, budget: int, min_generations: int, n_knots: int = P.KNOTS) -> int:
     """The largest population (≤ the default, ≥ MIN_POPULATION) whose `min_generations` generations fit in the
     budget; ValueError with the figures when none does."""
     rollouts = int(budget) // task.horizon
@@ -48,7 +48,7 @@ def population_for(task, budget: int, min_generations: int, n_knots: int = 8) ->
     return pop
 
 
-def run(task, budget: int, seed: int, callback=None, n_knots: int = 8, sigma0: float = 0.3,
+def run(task, budget: int, seed: int, callback=None, n_knots: int = P.KNOTS, sigma0: float = 0.3,
         max_iterations: int | None = None, method: str = "cma-es", min_generations: int | None = None,
         free: bool = False) -> Result:
     import warnings

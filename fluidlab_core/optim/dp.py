@@ -63,8 +63,6 @@ import numpy as np
 from fluidlab_core.optim import params as P
 from fluidlab_core.optim.progress import Progress, Result
 
-FREE_KNOTS = 8  # per axis, "dp-free" (cma-es-free's number, optim/cmaes.py)
-
 
 @dataclass
 class DPOptions:
@@ -107,7 +105,7 @@ class _Adam:
 
 def _start(task, seed: int, opts: DPOptions):
     """The parametrisation, the seeded starting parameters, Adam's step per parameter, and the gradient simulator."""
-    par = P.knots(task, FREE_KNOTS, free=True) if opts.free_knots and task.periodic else P.default(task)
+    par = P.knots(task, free=True) if opts.free_knots and task.periodic else P.default(task)
     rng = np.random.default_rng(seed)
     theta = np.zeros(par.size)
     start = task.initial_actions()

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+KNOTS = 8  # knots per axis of the knots parametrisation (CMA-ES's search, and DP's over free knots)
+
 
 class Parametrisation:
     """θ = [action parameters (n_a), initial tool position offset (k)]."""
@@ -114,7 +116,7 @@ def periodic(task) -> Parametrisation:
                            f"periodic (stroke {stroke} + return {reset} steps)")
 
 
-def knots(task, n_knots: int = 8, free: bool = False) -> Parametrisation:
+def knots(task, n_knots: int = KNOTS, free: bool = False) -> Parametrisation:
     """Low-dimensional: n_knots per axis over the horizon, or over the stroke of a periodic task (`free`: over the
     whole horizon all the same, so that the tool may end anywhere)."""
     if task.periodic and not free:
