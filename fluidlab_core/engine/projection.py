@@ -70,6 +70,11 @@ r_f = x_f − c:
     u_f = ½ (u*_I + u*_J)·e_d − Δt (p_J − p_I)/(ρ Δx)      (liquid–liquid)
     u_f = u*_I·e_d − Δt (0 − p_I)/(ρ θ Δx)                 (liquid–air: p = 0 at θ of the way, θ from the fills,
                                                              θ ≥ 0.1; ghost fluid, Gibou et al. 2002)
+    u_f = the nodes' mean, after and before the substep      (outside the solve: air; AFLIP's u_f − u⁰_f there is
+                                                             gravity, as for a free particle)
+    u_f = u⁰_f                                              (outside the solve with a node in a wall, static or
+                                                             tool: the particles beside it gather no gravity that
+                                                             the pressure does not balance)
     Q = Δx² Σ_I p_I b_I,   b_I = Σ_f s w_f σ_f K_f          (the pressure's force and torque on the body)
     q = q* + Δt M⁻¹ Q,    M = diag(m 1, I_c),   q* = the body's velocity after the last push, plus g Δt
 Each solid face's weight whose segment the body's surface crosses (t cells beyond I, from φ at the two nodes) is
@@ -1387,6 +1392,13 @@ class LiquidProjection:
                     elif (ui and kj == WALL) or (uj and ki == WALL):
                         u = 0.0
                         u0 = 0.0
+                    elif ki == WALL or kj == WALL:
+                        # a face inside a wall, a static or a tool, outside the solve, which the particles beside the
+                        # wall gather from: it keeps its velocity before the substep (no change for AFLIP's delta).
+                        # The nodes' mean carried gravity that no pressure balances (v* = v + Δt g at every node):
+                        # AFLIP gave the liquid beside the walls a downward push each substep, and a still pool
+                        # stirred itself to 0.03 m/s rms (0.05 beside the walls; 0.0001 with this, docs/engine.md)
+                        u = u0
                     if ui or uj:
                         sig = self.sig_p[I][d]
                         sk, kf = ti.f64(0.0), ti.f64(0.0)
