@@ -279,8 +279,10 @@ def test_elastic_foam_dropped_onto_water_floats_at_archimedes_depth():
     nodes' (the B-spline's smeared volume) it floated 0.07 high (a 500 kg/m³ cube: 0.426, 0.423, 0.429 over 3 s);
     with the share sharpened by SOFT_SHARP, 0.474, 0.473, 0.477 for that cube and 0.361, 0.365, 0.396 for this
     foam in their first three seconds (bench/results/buoyancy_3d.txt; 2026-12-05; 0.382, 0.390 here in a run of
-    this test). ± 0.05 as for the rigid cube: it still bobs by ± 0.07 in its second second, and runs part by
-    0.01-0.02 in a second's mean (another bench run of the foam: 0.363, 0.374). The default coupling (pressure="state") floats this foam, in the tasks' softer water, at
+    this test). ± 0.05 as for the rigid cube: it runs part by 0.01-0.02 in a second's mean (another bench run of
+    the foam: 0.363, 0.374). Since AFLIP stopped pushing the water beside the foam (2026-12-07, the still-water
+    test below) the foam heaves freely, ± 0.21 in its second second, damping (0.409 here, spread 0.49; before:
+    0.407, spread 0.19, the stirred water holding it). The default coupling (pressure="state") floats this foam, in the tasks' softer water, at
     0.51, then 0.56-0.61 (it sinks: README, floating bodies)."""
     from fluidlab_core.tasks import common
 
@@ -374,6 +376,34 @@ def test_a_still_pool_stays_still_beside_the_walls():
     report("projection, still pool", rms=rms, rms_beside_walls=rms_beside, particles_beside=int(beside.sum()))
     assert beside.sum() > 1000
     assert rms < 0.005 and rms_beside < 0.005
+
+
+def test_a_floating_elastic_body_leaves_the_still_water_around_it_still():
+    """The Gathering tasks' foam (elastic, 400 kg/m³) as a 4 cm cube started at Archimedes' depth in 6 cm of still
+    water (16 cells, 12 cm box), the Scene's AFLIP 0.99 on the projection: over its first 0.375 s the water's rms
+    speed stays under 0.02 m/s and no particle reaches 0.2 m/s. Until 2026-12-07 a face the foam shares took, for
+    AFLIP's "before the substep", the foam's velocity v* − Δt g after its stress: a body at rest holds Δt f/m there
+    against the pressure, and AFLIP gave the water beside it that push every substep (projection.py, the face
+    velocities; docs/engine.md). Measured then: rms 0.031, 0.050, 0.072 m/s at 0.125, 0.25, 0.375 s, fastest 0.41,
+    0.60, 0.98 m/s; with the foam's transfer velocity without its stress: 0.0059, 0.0081, 0.0095, fastest 0.027,
+    0.042, 0.069 (the foam's own bob, ± 0.015 m/s, is the same in both)."""
+    from fluidlab_core.tasks import common
+
+    def run():
+        sim, scene = validation.floating_cube_sim(16, common.FLOAT_FOAM, M.WATER, drop=None, width=WIDTH, side=SIDE,
+                                                  pressure="projection")
+        names = [n for n in sim.handles if n != "cube"]
+        rms, fastest = [], []
+        for _ in range(3):
+            sim.step(n=int(round(0.125 / scene.dt)))
+            speed = np.linalg.norm(np.concatenate([sim.velocities(n) for n in names]), axis=1)
+            rms.append(float(np.sqrt((speed ** 2).mean())))
+            fastest.append(float(speed.max()))
+        return sim.solver.model.flip, rms, fastest
+    flip, rms, fastest = fresh(run)
+    report("projection, still water round a floating foam", rms=rms, fastest=fastest)
+    assert flip == 0.99
+    assert max(rms) < 0.02 and max(fastest) < 0.2
 
 
 def test_a_closed_box_full_of_liquid_stays_at_rest():

@@ -1412,7 +1412,14 @@ class LiquidProjection:
                                     vi = self.soft_v[I][d] + dt * dx * dx * self.soft_dv[I][d]
                                     vj = self.soft_v[J][d] + dt * dx * dx * self.soft_dv[J][d]
                                     ub = (mi * vi + mj * vj) / (mi + mj)
-                                    ub0 = self._soft_face(I, J, d, self.soft_v) - g[d] * dt
+                                    if ti.static(s.soft_flip):
+                                        # before the substep: the solids' transfer velocity without their stress.
+                                        # v* − Δt g kept the stress's Δt f/m, which a body at rest holds against
+                                        # the pressure: AFLIP gave the liquid beside a floating elastic body that
+                                        # push each substep (docs/engine.md, "AFLIP beside deformable solids")
+                                        ub0 = ti.cast(self._soft_face(I, J, d, s.grid_v0_s), ti.f64)
+                                    else:  # (read only by AFLIP)
+                                        ub0 = self._soft_face(I, J, d, self.soft_v) - g[d] * dt
                             else:
                                 xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
                                     + 0.5 * dx * ti.Vector.unit(3, d, ti.f64)

@@ -99,6 +99,16 @@ class Solver:
             self.grid_vol_f = ti.field(real, shape=model.grid_shape)
             if self.private:
                 self.copies_vol_f = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))
+        # AFLIP on the projection beside deformable solids (projection.py, the faces): the solids' transfer
+        # momentum without their stress, whose velocity v⁰ is what a face the solids share had before the substep
+        self.soft_flip = self.projection and model.flip > 0.0 and not model.has_rigid \
+            and 0 < len(model.fluid_models) < len(model.constitutive)
+        if self.soft_flip:
+            self.grid_v0_s = ti.Vector.field(3, real, shape=model.grid_shape)  # v⁰ of the solids' field (m/s)
+            if self.private:
+                self.copies_mv0_s = ti.Vector.field(3, real, shape=(self.copies,) + tuple(model.grid_shape))
+            else:
+                self.grid_mv0_s = ti.Vector.field(3, real, shape=model.grid_shape)  # (kg m/s)
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -198,6 +208,8 @@ class Solver:
                     self.grid_vol_f[I] = 0.0
                 if ti.static(self.has_flip):
                     self.grid_mv0[I] = ti.Vector.zero(float, 3)
+                if ti.static(self.soft_flip):
+                    self.grid_mv0_s[I] = ti.Vector.zero(float, 3)
             for p in range(self.n_particles):
                 if ti.static(host_twist):
                     if p == 0:
@@ -231,6 +243,15 @@ class Solver:
                     self.grid_vol[I] = vol
                     if ti.static(self.private):
                         self.grid_vol_f[I] = transfer.reduce_scalar_copies(self.copies_vol_f, self.copies, I)
+                    if ti.static(self.soft_flip):
+                        mv0_s = ti.Vector.zero(float, 3)
+                        if ti.static(self.private):
+                            mv0_s = transfer.reduce_vector_copies(self.copies_mv0_s, self.copies, I)
+                        else:
+                            mv0_s = self.grid_mv0_s[I]
+                        self.grid_v0_s[I] = ti.Vector.zero(float, 3)
+                        if m > self.model.mass_floor:
+                            self.grid_v0_s[I] = mv0_s / m
                 else:
                     vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
                 self.grid_m[I] = m
@@ -429,6 +450,14 @@ class Solver:
             else:
                 transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p],
                                  state.v[s_in, p], Cp, tau, p)
+            if ti.static(self.soft_flip):
+                if not transfer.is_fluid(self.model, p):
+                    if ti.static(self.private):
+                        transfer.scatter_momentum(self.model, self.copies_mv0_s, c, True, state.x[s_in, p],
+                                                  state.v[s_in, p], Cp, p)
+                    else:
+                        transfer.scatter_momentum(self.model, self.grid_mv0_s, c, False, state.x[s_in, p],
+                                                  state.v[s_in, p], Cp, p)
             if ti.static(self.has_flip):
                 if transfer.is_fluid(self.model, p):
                     if ti.static(self.private):
