@@ -79,6 +79,7 @@ class Solver:
                 self.copies_mv0 = ti.Vector.field(3, real, shape=(self.copies,) + tuple(model.grid_shape))
             else:
                 self.grid_mv0 = ti.Vector.field(3, real, shape=model.grid_shape)  # (kg m/s)
+            self.mv0_source = self.copies_mv0 if self.private else self.grid_mv0  # (_transfer_velocity)
         self.has_jbar = model.has_jbar
         if self.has_jbar:  # J-bar (transfer.py): the liquids' mass-weighted J at the nodes
             self.grid_J = ti.field(real, shape=model.grid_shape)  # J_i
@@ -109,6 +110,7 @@ class Solver:
                 self.copies_mv0_s = ti.Vector.field(3, real, shape=(self.copies,) + tuple(model.grid_shape))
             else:
                 self.grid_mv0_s = ti.Vector.field(3, real, shape=model.grid_shape)  # (kg m/s)
+            self.mv0_s_source = self.copies_mv0_s if self.private else self.grid_mv0_s
         self.rigid = None
         self.has_rigid = model.has_rigid
         if model.has_rigid:
@@ -244,14 +246,7 @@ class Solver:
                     if ti.static(self.private):
                         self.grid_vol_f[I] = transfer.reduce_scalar_copies(self.copies_vol_f, self.copies, I)
                     if ti.static(self.soft_flip):
-                        mv0_s = ti.Vector.zero(float, 3)
-                        if ti.static(self.private):
-                            mv0_s = transfer.reduce_vector_copies(self.copies_mv0_s, self.copies, I)
-                        else:
-                            mv0_s = self.grid_mv0_s[I]
-                        self.grid_v0_s[I] = ti.Vector.zero(float, 3)
-                        if m > self.model.mass_floor:
-                            self.grid_v0_s[I] = mv0_s / m
+                        self.grid_v0_s[I] = self._transfer_velocity(self.mv0_s_source, I, m)
                 else:
                     vn_f = grid.field_velocity(self.model, I, 1, c, m, mv, m_f, mv_f, state, s_in)
                 self.grid_m[I] = m
@@ -269,18 +264,24 @@ class Solver:
                 if ti.static(keep):
                     self.store_m[s_in, I], self.store_mv[s_in, I], self.store_v[s_in, I] = m, mv, vn
             if ti.static(self.has_flip):
-                mv0 = ti.Vector.zero(float, 3)
-                if ti.static(self.private):
-                    mv0 = transfer.reduce_vector_copies(self.copies_mv0, self.copies, I)
-                else:
-                    mv0 = self.grid_mv0[I]
                 m_liquid = m
                 if ti.static(self.two_fields):
                     m_liquid = self.grid_m_f[I]
-                v0 = ti.Vector.zero(float, 3)
-                if m_liquid > self.model.mass_floor:
-                    v0 = mv0 / m_liquid
-                self.grid_v0[I] = v0
+                self.grid_v0[I] = self._transfer_velocity(self.mv0_source, I, m_liquid)
+
+    @ti.func
+    def _transfer_velocity(self, source: ti.template(), I, m):
+        """AFLIP's v⁰ at node I: the transfer momentum without stress (scatter_momentum) over the node mass m, from
+        `source`, the grid copies (summed, and zeroed for the next substep) or the atomic field."""
+        mv0 = ti.Vector.zero(float, 3)
+        if ti.static(self.private):
+            mv0 = transfer.reduce_vector_copies(source, self.copies, I)
+        else:
+            mv0 = source[I]
+        v0 = ti.Vector.zero(float, 3)
+        if m > self.model.mass_floor:
+            v0 = mv0 / m
+        return v0
 
     @ti.func
     def _g2p_loop(self, state: ti.template(), s_in, s_out, keep: ti.template(), emit: ti.template(),
