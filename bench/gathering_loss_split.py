@@ -19,9 +19,6 @@ floating bodies), on the projection it floats. For each task, liquid and traject
   (bench/results/benchmark_<size>_statics/; GatheringHard's ships since 2026-12-07);
 - cma-es (state): the optimiser benchmark's CMA-ES seed 0 on the default, on the fixed statics
   (bench/results/benchmark_<size>_statics/);
-- cma-es, cma-es-free, dp-free, ppo (state, carved): each method's best seed re-run on the default after the tanks'
-  water was sampled round the paddle's initial pose (bench/results/benchmark_<size>_gathering_carved/, 2026-12-07;
-  CMA-ES's ship since then); every row here replays on that start, so the rows above it were optimised on the old one;
 - cma-es, cma-es-free, ppo, sac (projection): their seed 0 on the projection (bench/results/benchmark_<size>_projection/,
   from `python -m fluidlab_core.benchmark --pressure projection --methods cma-es cma-es-free ppo sac`).
 A trajectory whose file is missing is skipped. Beside each: the paddle's net displacement over the horizon and the
@@ -57,14 +54,6 @@ def trajectories(task: str, size: str) -> dict:
     if free:  # its best seed
         paths["cma-es-free (state)"] = statics / min(free, key=lambda r: r["final_loss"])["trajectory"]
     paths["dp-free (state)"] = statics / "trajectories" / task / f"{task}_dp-free_seed0_{size}.json"
-    # re-run on the water sampled round the paddle (2026-12-07): each method's best seed
-    carved = ROOT / "bench" / "results" / f"benchmark_{size}_gathering_carved"
-    runs = carved / "runs.jsonl"
-    recs = [json.loads(line) for line in open(runs)] if runs.is_file() else []
-    for method in ("cma-es", "cma-es-free", "dp-free", "ppo"):
-        mine = [r for r in recs if r["task"] == task and r["method"] == method and "final_loss" in r]
-        if mine:
-            paths[f"{method} (state, carved)"] = carved / min(mine, key=lambda r: r["final_loss"])["trajectory"]
     for method in ("cma-es", "cma-es-free", "ppo", "sac"):
         paths[f"{method} (projection)"] = (ROOT / "bench" / "results" / f"benchmark_{size}_projection" / "trajectories"
                                            / task / f"{task}_{method}_seed0_{size}_projection.json")

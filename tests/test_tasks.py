@@ -127,25 +127,6 @@ def test_task_builds_resets_steps_and_conserves_mass(name):
     np.testing.assert_array_equal(sim.positions(), x0)
 
 
-@pytest.mark.parametrize("name", TASKS)
-def test_no_particle_starts_inside_the_tool(name):
-    """Every body of a particle task is sampled round its tool at the tool's initial pose: no particle starts where
-    the tool would push it out in the first substeps. Until 2026-12-07 200 of the Gathering tanks' 4080 water
-    particles (at the small size) started inside the paddle, 96 of LatteArtStir's 3496 coffee particles and 12
-    of its 176 milk particles and 112 of Mixing's 4290 coffee particles inside the stick (docs/tasks.md)."""
-    from scipy.spatial.transform import Rotation
-
-    scene = small(name).scene("hard")
-    assert scene.tools, f"{name} has no tool"
-    for tool in scene.tools:
-        R = Rotation.from_quat(tool.quaternion)
-        for body in scene.bodies:
-            if len(body.points) == 0:
-                continue
-            inside = int((tool.shape.sdf(R.inv().apply(body.points - tool.position)) < 0.0).sum())
-            assert inside == 0, f"{name}: {inside} of {body.handle.name}'s particles start inside {tool.name}"
-
-
 @pytest.mark.parametrize("name", GOAL_TASKS)
 def test_goal_is_reached_by_its_own_script(name):
     """The goal file holds the scripted motion's pattern: replaying the script gives a zero loss, standing
@@ -312,8 +293,7 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
     or, for a trajectory optimised before an engine change that moved its physics, the loss re-measured by
     bench/remeasure_shipped.py (which keeps the optimiser's as `optimised_loss` and says why in `remeasured`:
     the tasks optimised before the nodes on the walls; Mixing and LatteArtPour re-shipped from runs made before
-    later engine changes; LatteArtStir and Mixing again after their coffee was sampled round the stick, 2026-12-07;
-    the Gathering tasks, re-optimised on their water sampled round the paddle, and Transporting carry their
+    later engine changes; the Gathering tasks and Transporting, re-optimised on today's engine, carry their
     optimiser's). Pouring within 5 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
     in another order move its loss (measured: 2.5843e-2 with one CPU thread, as the bench optimised it, 2.5759e-2
     with two, 0.33 %; each repeats exactly; on an AMD EPYC with AVX-512, 2026-11-27, the recorded 2.1361e-2
