@@ -451,22 +451,14 @@ class Solver:
             else:
                 transfer.scatter(self.model, self.grid_m, self.grid_mv, c, False, state.x[s_in, p],
                                  state.v[s_in, p], Cp, tau, p)
-            if ti.static(self.soft_flip):
+            if ti.static(self.soft_flip):  # the solids' transfer momentum beside the projection (AFLIP's v⁰)
                 if not transfer.is_fluid(self.model, p):
-                    if ti.static(self.private):
-                        transfer.scatter_momentum(self.model, self.copies_mv0_s, c, True, state.x[s_in, p],
-                                                  state.v[s_in, p], Cp, p)
-                    else:
-                        transfer.scatter_momentum(self.model, self.grid_mv0_s, c, False, state.x[s_in, p],
-                                                  state.v[s_in, p], Cp, p)
+                    transfer.scatter_momentum(self.model, self.mv0_s_source, c, self.private, state.x[s_in, p],
+                                              state.v[s_in, p], Cp, p)
             if ti.static(self.has_flip):
                 if transfer.is_fluid(self.model, p):
-                    if ti.static(self.private):
-                        transfer.scatter_momentum(self.model, self.copies_mv0, c, True, state.x[s_in, p],
-                                                  state.v[s_in, p], Cp, p)
-                    else:
-                        transfer.scatter_momentum(self.model, self.grid_mv0, c, False, state.x[s_in, p],
-                                                  state.v[s_in, p], Cp, p)
+                    transfer.scatter_momentum(self.model, self.mv0_source, c, self.private, state.x[s_in, p],
+                                              state.v[s_in, p], Cp, p)
 
     @ti.func
     def _twists_from_host(self, state: ti.template(), s, twist: ti.template()):
