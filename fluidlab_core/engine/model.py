@@ -200,6 +200,12 @@ class Model:
     def has_rigid(self) -> bool:
         return self.rigid is not None
 
+    @property
+    def projection_soft(self) -> bool:
+        """Deformable solids beside a projected liquid: their nodes' velocities are unknowns of its solve
+        (projection.py, "Deformable solids"; a scene with a rigid body has none there)."""
+        return self.projection and not self.has_rigid and len(self.fluid_models) < len(self.constitutive)
+
     def initial_state(self) -> State:
         """The state the scene was built with: particles at rest shape (F = I, C = 0), tools at their start
         poses."""

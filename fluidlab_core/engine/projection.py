@@ -211,7 +211,7 @@ class LiquidProjection:
         self.rho = ti.field(ti.f64, shape=())  # ρ_w in float64 (a Python constant would take the default precision)
         self.has_body = model.has_rigid  # the rigid body, if the scene has one (else only the mixture and walls)
         # deformable solids (elastic, plastic): the solids' field's nodes, each an unknown velocity of the solve
-        self.has_soft = (not model.has_rigid) and len(model.fluid_models) < len(model.constitutive)
+        self.has_soft = model.projection_soft
         shape = model.grid_shape
         f64, real = ti.f64, model.real
         self.kind = ti.field(ti.i8, shape=shape)
@@ -1412,14 +1412,12 @@ class LiquidProjection:
                                     vi = self.soft_v[I][d] + dt * dx * dx * self.soft_dv[I][d]
                                     vj = self.soft_v[J][d] + dt * dx * dx * self.soft_dv[J][d]
                                     ub = (mi * vi + mj * vj) / (mi + mj)
-                                    if ti.static(s.soft_flip):
+                                    if ti.static(s.soft_flip):  # (u⁰ is read by AFLIP only)
                                         # before the substep: the solids' transfer velocity without their stress.
                                         # v* − Δt g kept the stress's Δt f/m, which a body at rest holds against
                                         # the pressure: AFLIP gave the liquid beside a floating elastic body that
                                         # push each substep (docs/engine.md, "AFLIP beside deformable solids")
                                         ub0 = ti.cast(self._soft_face(I, J, d, s.grid_v0_s), ti.f64)
-                                    else:  # (read only by AFLIP)
-                                        ub0 = self._soft_face(I, J, d, self.soft_v) - g[d] * dt
                             else:
                                 xf = ti.cast(ti.Vector(self.model.origin) + I * self.model.dx, ti.f64) \
                                     + 0.5 * dx * ti.Vector.unit(3, d, ti.f64)

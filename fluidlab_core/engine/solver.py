@@ -102,8 +102,7 @@ class Solver:
                 self.copies_vol_f = ti.field(real, shape=(self.copies,) + tuple(model.grid_shape))
         # AFLIP on the projection beside deformable solids (projection.py, the faces): the solids' transfer
         # momentum without their stress, whose velocity v⁰ is what a face the solids share had before the substep
-        self.soft_flip = self.projection and model.flip > 0.0 and not model.has_rigid \
-            and 0 < len(model.fluid_models) < len(model.constitutive)
+        self.soft_flip = model.projection_soft and model.flip > 0.0 and len(model.fluid_models) > 0
         if self.soft_flip:
             self.grid_v0_s = ti.Vector.field(3, real, shape=model.grid_shape)  # v⁰ of the solids' field (m/s)
             if self.private:
