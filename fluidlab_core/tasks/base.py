@@ -113,6 +113,7 @@ class Task:
         self._observe_index: dict | None = None
         self._handles: dict | None = None
         self._touches: bool | None = None
+        self._room: dict | None = None
 
     @property
     def tool_touches_particles(self) -> bool:
@@ -210,8 +211,53 @@ class Task:
             lo, hi = self.workspace()
             pos = np.array(state.tool_position, dtype=np.float64)
             pos[0] = np.clip(np.asarray(tool_position, dtype=np.float64), lo, hi)
-            state = state.replace(tool_position=pos)
+            state = state.replace(tool_position=pos, x=self._liquid_round_tool(state, pos[0]))
         sim.set_state(state)
+
+    def _tool_room(self) -> dict:
+        """{body name: the sites (m) its liquid leaves for the tool at the tool's nominal start}, for the bodies
+        sampled round the tool (`common.Without` with a `common.Posed` tool among its solids), with the tool's
+        shape and rotation: the lattice sites of the body's shape without the tool that lie inside it."""
+        if self._room is None:
+            from fluidlab_core.tasks import common
+
+            scene = self.scene("hard")
+            self._room = {}
+            for body in scene.bodies:
+                shape = body.shape
+                if not isinstance(shape, common.Without):
+                    continue
+                tools = [s for s in shape.solids if isinstance(s, common.Posed)]
+                if not tools:
+                    continue
+                rest = common.Without(shape.shape, [s for s in shape.solids if not isinstance(s, common.Posed)])
+                sites = rest.sample(scene.particle_spacing)
+                tool = tools[0]
+                self._room[body.handle.name] = (sites[tool.sdf(sites) < 0.0], tool)
+        return self._room
+
+    def _liquid_round_tool(self, state, position) -> np.ndarray:
+        """The start positions with the tool's origin at `position` (m): the particles of a body sampled round
+        the tool's nominal start that the tool covers there move into the sites it left at the nominal start and
+        no longer covers, so that the liquid starts round the tool wherever the start puts it (with the tool's
+        volume, the same number of sites up to a lattice row; any left over stay, and the tool pushes them out)."""
+        from fluidlab_core.tasks import common
+
+        x = state.x
+        room = self._tool_room()
+        if not room:
+            return x
+        x = np.array(x, copy=True)
+        for name, (sites, tool) in room.items():
+            if np.allclose(position, tool.position):
+                continue
+            there = common.Posed(tool.shape, np.concatenate([position, tool.rotation.as_quat()]))
+            rows = np.arange(self.body_slice(name).start, self.body_slice(name).stop)
+            movers = rows[there.sdf(x[rows].astype(np.float64)) < 0.0]
+            free = sites[there.sdf(sites) >= 0.0]
+            n = min(len(movers), len(free))
+            x[movers[:n]] = free[:n].astype(x.dtype)
+        return x
 
     def twists(self, actions) -> np.ndarray:
         """(N, 6) tool twists from (N, k) actions in the task's action space, clipped to ±max_tool_speed."""

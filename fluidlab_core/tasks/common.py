@@ -40,9 +40,31 @@ FLOAT_FOAM_B = M.Elastic("task_float_foam_b", density=400.0, shear_modulus=_FOAM
                          color=(0.3, 0.75, 0.3))
 
 
+class Posed(S.Shape):
+    """A shape given in its own frame (a tool's), placed at pose (x, y, z, qx, qy, qz, qw): its signed distance
+    in the world. For the tools' initial poses, which the liquid is sampled around (`Without`)."""
+
+    def __init__(self, shape: S.Shape, pose):
+        from scipy.spatial.transform import Rotation
+
+        pose = np.asarray(pose, dtype=float)
+        self.shape, self.position = shape, pose[:3]
+        self.rotation = Rotation.from_quat(pose[3:] / np.linalg.norm(pose[3:]))
+
+    def bounds(self):
+        lo, hi = self.shape.bounds()
+        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                            for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        world = self.rotation.apply(corners) + self.position
+        return world.min(axis=0), world.max(axis=0)
+
+    def sdf(self, points):
+        return self.shape.sdf(self.rotation.inv().apply(np.asarray(points, dtype=float) - self.position))
+
+
 class Without(S.Shape):
-    """A box of liquid minus solids (floating objects, a post, a sugar cube): its signed distance excludes
-    them, so that no liquid particle starts inside one. Sampled on the box's lattice."""
+    """A box of liquid minus solids (floating objects, a post, a sugar cube, the tool at its initial pose): its
+    signed distance excludes them, so that no liquid particle starts inside one. Sampled on the box's lattice."""
 
     def __init__(self, shape: S.Shape, solids):
         self.shape = shape
