@@ -330,8 +330,8 @@ def test_shipped_trajectories_reproduce_their_recorded_loss():
     or, for a trajectory optimised before an engine change that moved its physics, the loss re-measured by
     bench/remeasure_shipped.py (which keeps the optimiser's as `optimised_loss` and says why in `remeasured`:
     the tasks optimised before the nodes on the walls; Mixing and LatteArtPour re-shipped from runs made before
-    later engine changes; the Gathering tasks and Transporting, re-optimised on today's engine, carry their
-    optimiser's). Pouring within 5 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
+    later engine changes; the Gathering pair, LatteArtStir and Mixing since their liquid starts round the tool,
+    2026-12-07; Transporting carries its optimiser's). Pouring within 5 %: its pour turns on a tenth of a radian of tilt over 8 s, and float32 sums
     in another order move its loss (measured: 2.5843e-2 with one CPU thread, as the bench optimised it, 2.5759e-2
     with two, 0.33 %; each repeats exactly; on an AMD EPYC with AVX-512, 2026-11-27, the recorded 2.1361e-2
     replays as 2.1623e-2, 1.23 %, while every other task replays to within 2e-5 there). The bound was 2 % until
