@@ -8,10 +8,10 @@ tasks' physics).
 For each task and liquid pressure ("state": the default weakly compressible liquid the tasks were optimised on;
 "projection": engine/projection.py, which floats bodies at Archimedes' depth):
 - rest: the tool held still over the horizon (Transporting's jet runs, as in every rollout of that task); the share
-  of each foam object's particles below the water's level, as the mean over the horizon's second half (Archimedes
-  0.40: 400 kg/m³ foam). The level is the tank's fill height (41 mm: the water was filled around the objects at
-  their Archimedes depth) raised by the jet's emitted volume over the tank's inner area (Transporting: 7 mm over
-  its 0.5 s), the level an incompressible liquid would have;
+  of each foam object's volume below the water's surface (submerged_shares), as the mean over the horizon's second
+  half (Archimedes 0.40: 400 kg/m³ foam). The level in the next column is the tank's fill height (41 mm: the water
+  was filled around the objects at their Archimedes depth) raised by the jet's emitted volume over the tank's inner
+  area (Transporting: 7 mm over its 0.5 s), the level an incompressible liquid would have;
 - the water's level at the horizon's end, measured: the median over the tank's inner columns away from the objects
   and the jet of the highest water particle's height plus half the particle spacing, beside the level above
   (Transporting; Gathering's has no inflow);
@@ -19,8 +19,10 @@ For each task and liquid pressure ("state": the default weakly compressible liqu
   default), its task loss and return (the sum of the per-step rewards), and the same for the tool held still (what
   the trajectory gains over doing nothing);
 - the wall time per simulated step of the shipped rollout (after its first, compiling, call).
-With --float-seconds S, instead: the tool held still for S seconds, each second's mean share under (both objects)
-and the water's fastest and rms particle speeds at each second's end (the still water's spurious currents).
+With --float-seconds S, instead: the tool held still for S seconds, each second's mean share under (both objects),
+their tilt from upright at its end (a cube of density ratio s with s(1 − s) > 1/6, as the foam's 0.4, is unstable
+upright and rolls), and the water's fastest and rms particle speeds at each second's end (the still water's
+spurious currents).
 Appends its table to the output file.
 """
 from __future__ import annotations
@@ -74,9 +76,36 @@ def measured_level(task, sim) -> float:
     return float(np.median(top) + 0.5 * s)
 
 
-def submerged_share(task, sim, body: str) -> float:
-    z = sim.positions(body)[:, 2]
-    return float((z < level(task, sim)).mean())
+def submerged_shares(task, sim) -> list[float]:
+    """Each object's share of its volume below the water's surface, the surface being the height h at which the
+    water's volume (emitted included), the objects' parts below h and a submerged tool's (Gathering's paddle, a box
+    from PADDLE_Z up) fill the tank: validation.submerged_by_volume, each particle counted by the part of its layer
+    below h. Until 2026-12-07 this counted the particles below `level` (the fill height): a count that moves in
+    steps of a particle layer (a sixth of a small-size cube), and that read the objects 1.1 mm (0.05) too high
+    while the water that started inside the paddle raised the level (it now starts round it)."""
+    from fluidlab_core.apps.validation import submerged_by_volume
+    from fluidlab_core.tasks import gathering as g
+
+    water = sum(float(sim.volumes(b).sum()) for b in ("water", *[e.name for e in sim.emitter_specs]))
+    area, fill = inner_area(), water + inner_area() * g.TANK_WALL
+    if task.tool_name == "paddle":
+        pose = sim.tool_pose("paddle")
+        paddle = g.PADDLE_SIZE[0] * g.PADDLE_SIZE[1]
+        area, fill = area - paddle, fill - paddle * float(pose[2])
+    x = {b: sim.positions(b) for b in objects(task)}
+    v = {b: sim.volumes(b) for b in x}
+    _, h = submerged_by_volume(fill, np.concatenate(list(x.values())), np.concatenate(list(v.values())), area)
+    return [float((v[b] * np.clip((h - x[b][:, 2]) / np.cbrt(v[b]) + 0.5, 0.0, 1.0)).sum() / v[b].sum())
+            for b in x]
+
+
+def tilt_degrees(start: np.ndarray, now: np.ndarray) -> float:
+    """The angle (degrees) of the rotation that best maps a body's particles at the start onto them now (Kabsch)."""
+    a, b = start - start.mean(axis=0), now - now.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def run(task_name: str, size: str, pressure: str) -> dict:
@@ -90,14 +119,13 @@ def run(task_name: str, size: str, pressure: str) -> dict:
     still = np.zeros((n, task.n_actions))
     # rest: the paddle still; the objects' shares over the second half
     task.reset(sim)
-    shares = {b: [] for b in objects(task)}
+    shares = []
     for k in range(n):
         sim.step(action=np.zeros(6))
         if k >= n // 2:
-            for b in shares:
-                shares[b].append(submerged_share(task, sim, b))
+            shares.append(submerged_shares(task, sim))
     out = {"task": task_name, "size": size, "pressure": pressure, "substeps": sim.substeps}
-    out["rest_share"] = {b: float(np.mean(v)) for b, v in shares.items()}
+    out["rest_share"] = dict(zip(objects(task), np.mean(shares, axis=0).tolist()))
     out["level"], out["measured_level"] = level(task, sim), measured_level(task, sim)
     rest = task.evaluate(still)
     out["still_loss"], out["still_return"] = rest["loss"], rest["return"]
@@ -113,13 +141,15 @@ def run(task_name: str, size: str, pressure: str) -> dict:
 
 
 def floating(task_name: str, size: str, pressure: str, seconds: float) -> list[str]:
-    """Per-second rows of the objects' share under and the water's speeds, the paddle held still."""
+    """Per-second rows of the objects' share under, their tilt at the second's end and the water's speeds, the
+    paddle held still."""
     import fluidlab_core as fl
     from fluidlab_core import tasks
 
     task = tasks.make(task_name, size, pressure=pressure)
     sim = task.simulator()
     task.reset(sim)
+    start = {b: sim.positions(b) for b in objects(task)}
     per_second = int(round(1.0 / task.dt))
     rows = []
     t0 = time.perf_counter()
@@ -127,10 +157,11 @@ def floating(task_name: str, size: str, pressure: str, seconds: float) -> list[s
         shares = []
         for _ in range(per_second):
             sim.step(action=np.zeros(6))
-            shares.append([submerged_share(task, sim, b) for b in objects(task)])
+            shares.append(submerged_shares(task, sim))
         mean = ", ".join(f"{v:.3f}" for v in np.mean(shares, axis=0))
+        tilt = ", ".join(f"{tilt_degrees(x, sim.positions(b)):.1f}" for b, x in start.items())
         speed = np.linalg.norm(sim.velocities("water"), axis=1)
-        rows.append(f"{task_name} | {pressure} | {second}-{second + 1} s | {mean} | "
+        rows.append(f"{task_name} | {size} | {pressure} | {second}-{second + 1} s | {mean} | {tilt} | "
                     f"{speed.max():.3f}, {np.sqrt((speed ** 2).mean()):.4f} | {time.perf_counter() - t0:.0f} s")
         print(rows[-1], flush=True)
     fl.runtime.reset()
@@ -152,11 +183,11 @@ def main(argv=None):
     out = Path(args.out or ROOT / "bench" / "results" / f"gathering_projection_{args.size}.txt")
     lines = [f"# bench/gathering_projection.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32; the "
              f"tasks' liquid on the projection: APIC (Task.scene)",
-             "# task | pressure | substeps | rest: share under (each object; Archimedes 0.40) | water level at the "
+             "# task | pressure | substeps | rest: share under, by volume (each object; Archimedes 0.40) | water level at the "
              "end: incompressible, measured (mm) | still: loss, return | shipped: loss, return | s per step"]
     if args.float_seconds:
-        lines[1] = ("# task | pressure | second | share under (each object; Archimedes 0.40) | water's max, rms speed at its "
-                    "end (m/s) | wall time")
+        lines[1] = ("# task | size | pressure | second | share under, by volume (each object; Archimedes 0.40) | tilt at "
+                    "its end (degrees) | water's max, rms speed at its end (m/s) | wall time")
     print("\n".join(lines), flush=True)
     for name in args.tasks if args.float_seconds else ():
         for pressure in args.pressures:

@@ -495,13 +495,29 @@ def test_gas_blows_over_a_projected_pool_and_drags_a_foam_blob_above_it():
     assert speed < 0.03
 
 
+def _share_below(h, x, volumes):
+    """The share of a body's volume below height h, each particle counted by the part of its layer (V^⅓ thick)
+    under h, as validation.submerged_by_volume counts it."""
+    s = np.cbrt(volumes)
+    return float((volumes * np.clip((h - x[:, 2]) / s + 0.5, 0.0, 1.0)).sum() / volumes.sum())
+
+
 def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_the_water():
     """GatheringEasy (small: 8 mm cells, a static tank with 16 mm walls, two 24 mm foam cubes, the paddle) with
     pressure="projection": the statics and the tool close the solve's faces by their share of each face (the tool's
     flux on the right-hand side), and their nodes' stencil shares come from a quadrature of their SDF. Checked:
-    - the paddle held still for 1 s: the foam (400 kg/m³) floats with 0.40 ± 0.05 of its particles under the
-      water's fill height over 0.2-1 s (measured 2026-12-05: 0.38; the default liquid sinks it to 0.94,
-      bench/gathering_projection.py), the water stays still (rms particle speed under 0.01 m/s at 1 s: the tasks'
+    - the paddle held still for 1 s: the foam (400 kg/m³) floats with 0.37-0.47 of its volume under the water's
+      surface over 0.2-1 s (Archimedes 0.40; the default liquid sinks it to 0.94, bench/gathering_projection.py).
+      The surface is the height at which the water's volume, the foam's part below it and the paddle's fill the
+      tank, as validation.submerged_by_volume finds it. Measured 2026-12-07: 0.464 (0.456 before the liquid was
+      sampled round the paddle). The bound is one-sided because at the small size the foam sits 1.5 mm (0.18 of
+      an 8 mm cell) deeper than Archimedes: 0.43 at the medium size (5 mm cells); the 3-D buoyancy benchmark's
+      cubes, 5 cells across, float within 0.01 of it at 16 cells (bench/results/buoyancy_3d.txt). Until
+      2026-12-07 this counted the particles below the fill height WATER_DEPTH over the floor, in six 4 mm layers:
+      0.38-0.39, because the water that started inside the paddle raised the level by 1.1 mm and hid the offset.
+      With the projection the cubes also roll about y (26° in 1.25 s): a floating cube whose density ratio s
+      has s(1 − s) > 1/6 is unstable upright (its metacentre lies under its centre of mass), which the volume
+      share does not depend on. The water stays still (rms particle speed under 0.01 m/s at 1 s: the tasks'
       APIC 0.001-0.003; with the Scene's AFLIP 0.99 on the projection it was 0.077 and the fastest particles
       0.54 m/s, Task.scene) and in the tank (no particle a millimetre inside its walls), and its pressure rises by
       ρ g (± 3 %) down a column of open water;
@@ -521,11 +537,23 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
         sim = task.simulator()
         task.reset(sim)
         level = G.TANK_WALL + G.WATER_DEPTH
-        shares = []
+        (x0, y0, _), (x1, y1, _) = G.TANK_LOWER, G.TANK_UPPER
+        area = (x1 - x0 - 2 * G.TANK_WALL) * (y1 - y0 - 2 * G.TANK_WALL)  # the tank's inside (m²)
+        paddle = G.PADDLE_SIZE[0] * G.PADDLE_SIZE[1]  # the still paddle's cross-section, from PADDLE_Z up (m²)
+        water = float(sim.volumes("water").sum())  # the projection keeps the liquid's F = I: its rest volume
+        shares, layers = [], []
         for k in range(200):
             sim.step(action=np.zeros(6))
             if sim.time > 0.2 - 1e-9:
-                shares.append([(sim.positions(b)[:, 2] < level).mean() for b in ("object_a", "object_b")])
+                x = {b: sim.positions(b) for b in ("object_a", "object_b")}
+                v = {b: sim.volumes(b) for b in x}
+                # the surface h at which the water, the foam's part below h and the paddle's fill the tank:
+                # (A − A_paddle) h = V_water + A z_floor − A_paddle z_paddle + Σ foam below h
+                _, h = validation.submerged_by_volume(water + area * G.TANK_WALL - paddle * G.PADDLE_Z,
+                                           np.concatenate(list(x.values())), np.concatenate(list(v.values())),
+                                           area - paddle)
+                shares.append([_share_below(h, x[b], v[b]) for b in x])
+                layers.append([(x[b][:, 2] < level).mean() for b in x])
         speed = np.linalg.norm(sim.velocities("water"), axis=1)
         rms = float(np.sqrt((speed ** 2).mean()))
         tank = G.S.Tank(G.TANK_LOWER, G.TANK_UPPER, G.TANK_WALL)
@@ -541,13 +569,14 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
         inside = int(np.sum((np.abs(local[:, 0]) < 0.5 * tx - 1e-3) & (np.abs(local[:, 1]) < 0.5 * ty - 1e-3)
                             & (local[:, 2] > 1e-3) & (local[:, 2] < tz - 1e-3)))
         vx = float(sim.velocities("water")[:, 0].mean())
-        return np.array(shares), rms, in_walls, slope, len(z), inside, vx, pose
-    shares, rms, in_walls, slope, rows, inside, vx, pose = fresh(run)
+        return np.array(shares), np.array(layers), rms, in_walls, slope, len(z), inside, vx, pose
+    shares, layers, rms, in_walls, slope, rows, inside, vx, pose = fresh(run)
     share = float(shares.mean())
     report("projection, Gathering tank", share=share, shares=shares.mean(axis=0).round(3).tolist(), expected=0.40,
+           layer_count=layers.mean(axis=0).round(3).tolist(),
            still_rms=rms, in_walls=in_walls, slope_rho=slope, rows=rows, paddle_x=float(pose[0]), water_in_paddle=inside,
            water_vx=vx)
-    assert share == pytest.approx(0.40, abs=0.05)
+    assert 0.37 <= share <= 0.47
     assert rms < 0.01
     assert in_walls == 0
     assert rows >= 2 and slope == pytest.approx(1000.0, rel=0.03)
