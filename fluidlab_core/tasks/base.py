@@ -211,7 +211,8 @@ class Task:
             lo, hi = self.workspace()
             pos = np.array(state.tool_position, dtype=np.float64)
             pos[0] = np.clip(np.asarray(tool_position, dtype=np.float64), lo, hi)
-            state = state.replace(tool_position=pos, x=self._liquid_round_tool(state, pos[0]))
+            moved = self._liquid_round_tool(state, pos[0])  # None: no liquid sampled round the tool (a gas task)
+            state = state.replace(tool_position=pos, **({} if moved is None else {"x": moved}))
         sim.set_state(state)
 
     def _tool_room(self) -> dict:
@@ -236,18 +237,18 @@ class Task:
                 self._room[body.handle.name] = (sites[tool.sdf(sites) < 0.0], tool)
         return self._room
 
-    def _liquid_round_tool(self, state, position) -> np.ndarray:
+    def _liquid_round_tool(self, state, position) -> np.ndarray | None:
         """The start positions with the tool's origin at `position` (m): the particles of a body sampled round
         the tool's nominal start that the tool covers there move into the sites it left at the nominal start and
         no longer covers, so that the liquid starts round the tool wherever the start puts it (with the tool's
-        volume, the same number of sites up to a lattice row; any left over stay, and the tool pushes them out)."""
+        volume, the same number of sites up to a lattice row; any left over stay, and the tool pushes them out).
+        None where no body was sampled round the tool (AirCirculation's state has no particles)."""
         from fluidlab_core.tasks import common
 
-        x = state.x
         room = self._tool_room()
         if not room:
-            return x
-        x = np.array(x, copy=True)
+            return None
+        x = np.array(state.x, copy=True)
         for name, (sites, tool) in room.items():
             if np.allclose(position, tool.position):
                 continue
