@@ -77,34 +77,21 @@ def measured_level(task, sim) -> float:
 
 
 def submerged_shares(task, sim) -> list[float]:
-    """Each object's share of its volume below the water's surface, the surface being the height h at which the
-    water's volume (emitted included), the objects' parts below h and a submerged tool's (Gathering's paddle, a box
-    from PADDLE_Z up) fill the tank: validation.submerged_by_volume, each particle counted by the part of its layer
-    below h. Until 2026-12-07 this counted the particles below `level` (the fill height): a count that moves in
-    steps of a particle layer (a sixth of a small-size cube), and that read the objects 1.1 mm (0.05) too high
-    while the water that started inside the paddle raised the level (it now starts round it)."""
-    from fluidlab_core.apps.validation import submerged_by_volume
+    """Each object's share of its volume below the water's surface (gathering.submerged_shares: the height at
+    which the water, emitted included, the objects' parts below it and the paddle's fill the tank). Until
+    2026-12-07 this counted the particles below `level` (the fill height): a count that moves in steps of a particle
+    layer (a sixth of a small-size cube), and that read the objects 1.1 mm (0.05) too high while the water that
+    started inside the paddle raised the level (it now starts round it)."""
     from fluidlab_core.tasks import gathering as g
 
-    water = sum(float(sim.volumes(b).sum()) for b in ("water", *[e.name for e in sim.emitter_specs]))
-    area, fill = inner_area(), water + inner_area() * g.TANK_WALL
-    if task.tool_name == "paddle":
-        pose = sim.tool_pose("paddle")
-        paddle = g.PADDLE_SIZE[0] * g.PADDLE_SIZE[1]
-        area, fill = area - paddle, fill - paddle * float(pose[2])
-    x = {b: sim.positions(b) for b in objects(task)}
-    v = {b: sim.volumes(b) for b in x}
-    _, h = submerged_by_volume(fill, np.concatenate(list(x.values())), np.concatenate(list(v.values())), area)
-    return [float((v[b] * np.clip((h - x[b][:, 2]) / np.cbrt(v[b]) + 0.5, 0.0, 1.0)).sum() / v[b].sum())
-            for b in x]
+    return g.submerged_shares(sim, objects(task), paddle=task.tool_name if task.tool_name == "paddle" else None)
 
 
 def tilt_degrees(start: np.ndarray, now: np.ndarray) -> float:
-    """The angle (degrees) of the rotation that best maps a body's particles at the start onto them now (Kabsch)."""
-    a, b = start - start.mean(axis=0), now - now.mean(axis=0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    """The angle (degrees) of the rotation that best maps a body's particles at the start onto them now."""
+    from fluidlab_core.apps.validation import best_rotation
+
+    r = best_rotation(start, now)
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
 
 

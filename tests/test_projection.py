@@ -495,13 +495,6 @@ def test_gas_blows_over_a_projected_pool_and_drags_a_foam_blob_above_it():
     assert speed < 0.03
 
 
-def _share_below(h, x, volumes):
-    """The share of a body's volume below height h, each particle counted by the part of its layer (V^⅓ thick)
-    under h, as validation.submerged_by_volume counts it."""
-    s = np.cbrt(volumes)
-    return float((volumes * np.clip((h - x[:, 2]) / s + 0.5, 0.0, 1.0)).sum() / volumes.sum())
-
-
 def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_the_water():
     """GatheringEasy (small: 8 mm cells, a static tank with 16 mm walls, two 24 mm foam cubes, the paddle) with
     pressure="projection": the statics and the tool close the solve's faces by their share of each face (the tool's
@@ -509,7 +502,7 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
     - the paddle held still for 1 s: the foam (400 kg/m³) floats with 0.37-0.47 of its volume under the water's
       surface over 0.2-1 s (Archimedes 0.40; the default liquid sinks it to 0.94, bench/gathering_projection.py).
       The surface is the height at which the water's volume, the foam's part below it and the paddle's fill the
-      tank, as validation.submerged_by_volume finds it. Measured 2026-12-07: 0.464 (0.456 before the liquid was
+      tank (gathering.submerged_shares). Measured 2026-12-07: 0.464 (0.456 before the liquid was
       sampled round the paddle). The bound is one-sided because at the small size the foam sits 1.5 mm (0.18 of
       an 8 mm cell) deeper than Archimedes: 0.43 at the medium size (5 mm cells); the 3-D buoyancy benchmark's
       cubes, 5 cells across, float within 0.01 of it at 16 cells (bench/results/buoyancy_3d.txt). Until
@@ -537,23 +530,13 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
         sim = task.simulator()
         task.reset(sim)
         level = G.TANK_WALL + G.WATER_DEPTH
-        (x0, y0, _), (x1, y1, _) = G.TANK_LOWER, G.TANK_UPPER
-        area = (x1 - x0 - 2 * G.TANK_WALL) * (y1 - y0 - 2 * G.TANK_WALL)  # the tank's inside (m²)
-        paddle = G.PADDLE_SIZE[0] * G.PADDLE_SIZE[1]  # the still paddle's cross-section, from PADDLE_Z up (m²)
-        water = float(sim.volumes("water").sum())  # the projection keeps the liquid's F = I: its rest volume
+        objects = ("object_a", "object_b")
         shares, layers = [], []
         for k in range(200):
             sim.step(action=np.zeros(6))
             if sim.time > 0.2 - 1e-9:
-                x = {b: sim.positions(b) for b in ("object_a", "object_b")}
-                v = {b: sim.volumes(b) for b in x}
-                # the surface h at which the water, the foam's part below h and the paddle's fill the tank:
-                # (A − A_paddle) h = V_water + A z_floor − A_paddle z_paddle + Σ foam below h
-                _, h = validation.submerged_by_volume(water + area * G.TANK_WALL - paddle * G.PADDLE_Z,
-                                           np.concatenate(list(x.values())), np.concatenate(list(v.values())),
-                                           area - paddle)
-                shares.append([_share_below(h, x[b], v[b]) for b in x])
-                layers.append([(x[b][:, 2] < level).mean() for b in x])
+                shares.append(G.submerged_shares(sim, objects, paddle=task.tool_name))
+                layers.append([(sim.positions(b)[:, 2] < level).mean() for b in objects])
         speed = np.linalg.norm(sim.velocities("water"), axis=1)
         rms = float(np.sqrt((speed ** 2).mean()))
         tank = G.S.Tank(G.TANK_LOWER, G.TANK_UPPER, G.TANK_WALL)

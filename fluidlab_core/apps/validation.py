@@ -247,12 +247,10 @@ def submerged_by_volume(liquid_volume: float, x_body, body_volumes, area: float)
     particles it does not read a rough surface high (the top layer of a disturbed MPM surface scatters by a
     third of a cell; at 16 cells its 99th percentile sat 1.2–2.6 mm above this surface in the catalogue's water,
     and between 0.6 mm below and 1.1 mm above it in the tasks' softer water, bench/results/buoyancy_3d.txt)."""
-    z = np.asarray(x_body)[:, 2]
     v = np.asarray(body_volumes, dtype=np.float64)
-    s = np.cbrt(v)
 
     def below(h):
-        return float((v * np.clip((h - z) / s + 0.5, 0.0, 1.0)).sum())
+        return volume_below(h, x_body, v)
 
     lo, hi = 0.0, (liquid_volume + v.sum()) / area + 1.0  # A h − V_l − below(h) rises with h
     for _ in range(80):
@@ -260,6 +258,24 @@ def submerged_by_volume(liquid_volume: float, x_body, body_volumes, area: float)
         lo, hi = (h, hi) if area * h - liquid_volume - below(h) < 0.0 else (lo, h)
     h = 0.5 * (lo + hi)
     return below(h) / float(v.sum()), h
+
+
+def volume_below(h: float, x_body, body_volumes) -> float:
+    """Σ_p V_p clamp((h − z_p)/s_p + ½, 0, 1) (m³): the part of a body's volume below height h, each particle
+    counted by the part of its layer, s_p = V_p^(1/3) thick, under h (submerged_by_volume's count)."""
+    z = np.asarray(x_body)[:, 2]
+    v = np.asarray(body_volumes, dtype=np.float64)
+    return float((v * np.clip((h - z) / np.cbrt(v) + 0.5, 0.0, 1.0)).sum())
+
+
+def best_rotation(start, now) -> np.ndarray:
+    """The 3×3 rotation that best maps a body's particles at `start` onto them `now`, about their centroids
+    (least squares: Kabsch's SVD). For a body's tilt or roll from its particles alone."""
+    a = np.asarray(start, dtype=np.float64) - np.mean(start, axis=0)
+    b = np.asarray(now, dtype=np.float64) - np.mean(now, axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
 def cube_volume_share(sim, width: float = 0.12):
