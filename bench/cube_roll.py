@@ -21,7 +21,7 @@ weakly compressible liquid). The linearised roll grows as e^(λt), λ² = m g |G
 m a²/6 for I: λ ≤ 11.6 /s at s = 0.4 (an e-fold in 0.086 s or more).
 
     python bench/cube_roll.py [--ratios 0.4 0.9] [--pressures projection state] [--res 16] [--tilt 5]
-        [--seconds 1] [--out bench/results/cube_roll.txt]
+        [--seconds 1] [--flip A] [--water task|std] [--out bench/results/cube_roll.txt]
 """
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def metacentric_height(s: float, a: float = SIDE) -> float:
     return a / (12.0 * s) - a * (1.0 - s) / 2.0
 
 
-def build(s: float, pressure: str, res: int, tilt_deg: float):
+def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None = None, water: str = "task"):
     """(simulator, body-frame z axes of the cube's particles' fit): the tilted cube at Archimedes' depth."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
@@ -61,8 +61,9 @@ def build(s: float, pressure: str, res: int, tilt_deg: float):
     trimesh.creation.box(extents=(SIDE, SIDE, SIDE)).export(path)
     cube = Mesh(str(path), pose=pose)
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, 0.12), grid_res=res, dt=2e-3, substeps=1,
-                     pressure=pressure)
-    scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, LEVEL)), [cube]), common.WATER, name="water")
+                     pressure=pressure, flip=flip)
+    liquid = common.WATER if water == "task" else M.WATER
+    scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, LEVEL)), [cube]), liquid, name="water")
     body = M.Rigid(f"rigid_{s:g}", density=s * common.WATER.density, bulk_modulus=M.RIGID.bulk_modulus)
     scene.add_particles(cube, body, name="cube")
     validation._substeps(scene, None)
@@ -73,21 +74,21 @@ def tilt_degrees(start: np.ndarray, now: np.ndarray, tilt0_deg: float) -> float:
     """The cube's tilt from upright (degrees): the angle between the vertical and the nearest of its three body
     axes, so 0 face up, 45 edge down, 54.7 corner down (a cube turned by 90° is upright again). Its orientation is
     its start tilt (about y) composed with the rotation that best maps its particles at the start onto them now
-    (Kabsch)."""
-    a, b = start - start.mean(axis=0), now - now.mean(axis=0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    (validation.best_rotation)."""
+    from fluidlab_core.apps.validation import best_rotation
+
+    r = best_rotation(start, now)
     t = np.radians(tilt0_deg)
     axes0 = np.array([[np.cos(t), 0.0, -np.sin(t)], [0.0, 1.0, 0.0], [np.sin(t), 0.0, np.cos(t)]])  # body x, y, z
     up = np.abs((r @ axes0.T)[2]).max()
     return float(np.degrees(np.arccos(np.clip(up, -1.0, 1.0))))
 
 
-def run(s: float, pressure: str, res: int, tilt: float, seconds: float, every: float) -> tuple[list[float], float]:
+def run(s: float, pressure: str, res: int, tilt: float, seconds: float, every: float, flip: float | None = None,
+        water: str = "task") -> tuple[list[float], float]:
     import fluidlab_core as fl
 
-    sim, scene = build(s, pressure, res, tilt)
+    sim, scene = build(s, pressure, res, tilt, flip, water)
     start = sim.positions("cube")
     n_every = int(round(every / scene.dt))
     angles, t0 = [], time.perf_counter()
@@ -107,14 +108,20 @@ def main(argv=None):
     ap.add_argument("--tilt", type=float, default=5.0, help="the start tilt about y (degrees)")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--every", type=float, default=0.1, help="a column every this many seconds")
+    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
+                    "0.99 on the projection and 0, APIC, on the default liquid)")
+    ap.add_argument("--water", choices=["task", "std"], default="task",
+                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "cube_roll.txt"))
     args = ap.parse_args(argv)
     import fluidlab_core as fl
 
     fl.init(arch="cpu")
     times = [args.every * (k + 1) for k in range(int(round(args.seconds / args.every)))]
+    water = "the tasks' water" if args.water == "task" else "the catalogue's water"
+    flip = "the Scene's flip (0.99 on the projection, APIC on the default)" if args.flip is None else f"flip {args.flip:g}"
     lines = [f"# bench/cube_roll.py, {time.strftime('%Y-%m-%d %H:%M')}, CPU, float32: a 4 cm rigid cube in 6 cm of "
-             f"the tasks' water, 12 cm tank, {args.res} cells, started at rest at Archimedes' depth tilted "
+             f"{water}, {flip}, 12 cm tank, {args.res} cells, started at rest at Archimedes' depth tilted "
              f"{args.tilt:g}° about y",
              "# criterion: upright is stable where GM = a/(12 s) − a(1 − s)/2 > 0 (s < 0.211 or s > 0.789)",
              "# pressure | s | GM mm | criterion | tilt (degrees) at " + ", ".join(f"{t:g}" for t in times)
@@ -123,7 +130,7 @@ def main(argv=None):
     for pressure in args.pressures:
         for s in args.ratios:
             gm = metacentric_height(s)
-            angles, wall = run(s, pressure, args.res, args.tilt, args.seconds, args.every)
+            angles, wall = run(s, pressure, args.res, args.tilt, args.seconds, args.every, args.flip, args.water)
             line = (f"{pressure} | {s:g} | {gm * 1e3:+.2f} | {'stable' if gm > 0 else 'rolls'} | "
                     + ", ".join(f"{a:.1f}" for a in angles) + f" | {wall:.0f}")
             print(line, flush=True)
