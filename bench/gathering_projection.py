@@ -77,14 +77,15 @@ def measured_level(task, sim) -> float:
 
 
 def submerged_shares(task, sim) -> list[float]:
-    """Each object's share of its volume below the water's surface (gathering.submerged_shares: the height at
+    """Each object's share of its volume below the water's surface (validation.gathering_submerged_shares: the height at
     which the water, emitted included, the objects' parts below it and the paddle's fill the tank). Until
     2026-12-07 this counted the particles below `level` (the fill height): a count that moves in steps of a particle
     layer (a sixth of a small-size cube), and that read the objects 1.1 mm (0.05) too high while the water that
     started inside the paddle raised the level (it now starts round it)."""
-    from fluidlab_core.tasks import gathering as g
+    from fluidlab_core.apps.validation import gathering_submerged_shares
 
-    return g.submerged_shares(sim, objects(task), paddle=task.tool_name if task.tool_name == "paddle" else None)
+    paddle = task.tool_name if task.tool_name == "paddle" else None  # Transporting's bot is above the water
+    return gathering_submerged_shares(sim, objects(task), paddle=paddle)
 
 
 def tilt_degrees(start: np.ndarray, now: np.ndarray) -> float:

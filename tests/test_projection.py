@@ -502,7 +502,7 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
     - the paddle held still for 1 s: the foam (400 kg/m³) floats with 0.37-0.47 of its volume under the water's
       surface over 0.2-1 s (Archimedes 0.40; the default liquid sinks it to 0.94, bench/gathering_projection.py).
       The surface is the height at which the water's volume, the foam's part below it and the paddle's fill the
-      tank (gathering.submerged_shares). Measured 2026-12-07: 0.464 (0.456 before the liquid was
+      tank (validation.gathering_submerged_shares). Measured 2026-12-07: 0.464 (0.456 before the liquid was
       sampled round the paddle). The bound is one-sided because at the small size the foam sits 1.5 mm (0.18 of
       an 8 mm cell) deeper than Archimedes: 0.43 at the medium size (5 mm cells); the 3-D buoyancy benchmark's
       cubes, 5 cells across, float within 0.01 of it at 16 cells (bench/results/buoyancy_3d.txt). Until
@@ -535,7 +535,7 @@ def test_gathering_tank_on_the_projection_floats_its_foam_and_the_paddle_pushes_
         for k in range(200):
             sim.step(action=np.zeros(6))
             if sim.time > 0.2 - 1e-9:
-                shares.append(G.submerged_shares(sim, objects, paddle=task.tool_name))
+                shares.append(validation.gathering_submerged_shares(sim, objects, paddle=task.tool_name))
                 layers.append([(sim.positions(b)[:, 2] < level).mean() for b in objects])
         speed = np.linalg.norm(sim.velocities("water"), axis=1)
         rms = float(np.sqrt((speed ** 2).mean()))

@@ -278,6 +278,29 @@ def best_rotation(start, now) -> np.ndarray:
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
+def gathering_submerged_shares(sim, objects, paddle: str | None = None) -> list[float]:
+    """Each floating object's share of its volume below the water's surface in the Gathering tank (Transporting's
+    too), the surface being the height h at which the water (every liquid body but the objects: the tank's water
+    and any emitted), the objects' parts below h and the paddle's (a box PADDLE_SIZE across from its pose's z up;
+    `paddle` the tool's name, or None where no tool is in the water) fill the tank's inside:
+        (A − A_paddle) h = V_water + A z_floor − A_paddle z_paddle + Σ_objects volume below h
+    (submerged_by_volume; Archimedes: ρ_object/ρ_water). A count of particles under the fill height
+    moves in particle layers (sixths of a cube at the small size) and reads any change of the water's level."""
+    from fluidlab_core.tasks.gathering import PADDLE_SIZE, TANK_LOWER, TANK_UPPER, TANK_WALL
+
+    liquids = [h for h in sim.handles if h not in objects and sim.handles[h].material.is_liquid]
+    water = sum(float(sim.volumes(h).sum()) for h in liquids)
+    area = (TANK_UPPER[0] - TANK_LOWER[0] - 2 * TANK_WALL) * (TANK_UPPER[1] - TANK_LOWER[1] - 2 * TANK_WALL)
+    fill = water + area * TANK_WALL
+    if paddle is not None:
+        a_paddle = PADDLE_SIZE[0] * PADDLE_SIZE[1]
+        area, fill = area - a_paddle, fill - a_paddle * float(sim.tool_pose(paddle)[2])
+    x = {b: sim.positions(b) for b in objects}
+    v = {b: sim.volumes(b) for b in objects}
+    _, h = submerged_by_volume(fill, np.concatenate(list(x.values())), np.concatenate(list(v.values())), area)
+    return [volume_below(h, x[b], v[b]) / float(v[b].sum()) for b in objects]
+
+
 def cube_volume_share(sim, width: float = 0.12):
     """(share, surface m, the liquid's positions) of floating_cube_sim's set-up: submerged_by_volume of the cube
     against every block of liquid (the particle bodies other than "cube") in the tank `width` across."""
