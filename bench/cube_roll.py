@@ -21,7 +21,7 @@ weakly compressible liquid). The linearised roll grows as e^(λt), λ² = m g |G
 m a²/6 for I: λ ≤ 11.6 /s at s = 0.4 (an e-fold in 0.086 s or more).
 
     python bench/cube_roll.py [--ratios 0.4 0.9] [--pressures projection state] [--res 16] [--tilt 5]
-        [--seconds 1] [--flip A] [--water task|std] [--out bench/results/cube_roll.txt]
+        [--seconds 1] [--flip A] [--water task|std] [--contact-fill F] [--out bench/results/cube_roll.txt]
 """
 from __future__ import annotations
 
@@ -43,7 +43,8 @@ def metacentric_height(s: float, a: float = SIDE) -> float:
     return a / (12.0 * s) - a * (1.0 - s) / 2.0
 
 
-def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None = None, water: str = "task"):
+def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None = None, water: str = "task",
+          contact_fill: float = 0.97):
     """(simulator, body-frame z axes of the cube's particles' fit): the tilted cube at Archimedes' depth."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
@@ -61,7 +62,7 @@ def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None
     trimesh.creation.box(extents=(SIDE, SIDE, SIDE)).export(path)
     cube = Mesh(str(path), pose=pose)
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, 0.12), grid_res=res, dt=2e-3, substeps=1,
-                     pressure=pressure, flip=flip)
+                     pressure=pressure, flip=flip, contact_fill=contact_fill)
     liquid = common.WATER if water == "task" else M.WATER
     scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, LEVEL)), [cube]), liquid, name="water")
     body = M.Rigid(f"rigid_{s:g}", density=s * common.WATER.density, bulk_modulus=M.RIGID.bulk_modulus)
@@ -85,19 +86,21 @@ def tilt_degrees(start: np.ndarray, now: np.ndarray, tilt0_deg: float) -> float:
 
 
 def run(s: float, pressure: str, res: int, tilt: float, seconds: float, every: float, flip: float | None = None,
-        water: str = "task") -> tuple[list[float], float]:
+        water: str = "task", contact_fill: float = 0.97) -> tuple[list[float], list[float], float]:
     import fluidlab_core as fl
+    from fluidlab_core.apps.validation import cube_volume_share
 
-    sim, scene = build(s, pressure, res, tilt, flip, water)
+    sim, scene = build(s, pressure, res, tilt, flip, water, contact_fill)
     start = sim.positions("cube")
     n_every = int(round(every / scene.dt))
-    angles, t0 = [], time.perf_counter()
+    angles, shares, t0 = [], [], time.perf_counter()
     for _ in range(int(round(seconds / every))):
         sim.step(n=n_every)
         angles.append(tilt_degrees(start, sim.positions("cube"), tilt))
+        shares.append(cube_volume_share(sim, WIDTH)[0])
     wall = time.perf_counter() - t0
     fl.runtime.reset()
-    return angles, wall
+    return angles, shares, wall
 
 
 def main(argv=None):
@@ -112,6 +115,9 @@ def main(argv=None):
                     "0.99 on the projection and 0, APIC, on the default liquid)")
     ap.add_argument("--water", choices=["task", "std"], default="task",
                     help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
+    ap.add_argument("--contact-fill", type=float, default=0.97,
+                    help="Scene(contact_fill=...) on the default liquid: the node fill at which the liquid and the "
+                    "body share one velocity (engine/grid.py); above 1 fewer nodes share it, and 2 none")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "cube_roll.txt"))
     args = ap.parse_args(argv)
     import fluidlab_core as fl
@@ -119,20 +125,24 @@ def main(argv=None):
     fl.init(arch="cpu")
     times = [args.every * (k + 1) for k in range(int(round(args.seconds / args.every)))]
     water = "the tasks' water" if args.water == "task" else "the catalogue's water"
+    fill = "" if args.contact_fill == 0.97 else f", contact_fill {args.contact_fill:g}"
     flip = "the Scene's flip (0.99 on the projection, APIC on the default)" if args.flip is None else f"flip {args.flip:g}"
     lines = [f"# bench/cube_roll.py, {time.strftime('%Y-%m-%d %H:%M')}, CPU, float32: a 4 cm rigid cube in 6 cm of "
-             f"{water}, {flip}, 12 cm tank, {args.res} cells, started at rest at Archimedes' depth tilted "
+             f"{water}, {flip}{fill}, 12 cm tank, {args.res} cells, started at rest at Archimedes' depth tilted "
              f"{args.tilt:g}° about y",
              "# criterion: upright is stable where GM = a/(12 s) − a(1 − s)/2 > 0 (s < 0.211 or s > 0.789)",
              "# pressure | s | GM mm | criterion | tilt (degrees) at " + ", ".join(f"{t:g}" for t in times)
-             + " s | wall s"]
+             + " s | submerged share (s when afloat at rest; validation.cube_volume_share, a level body's count) | "
+             "wall s"]
     print("\n".join(lines), flush=True)
     for pressure in args.pressures:
         for s in args.ratios:
             gm = metacentric_height(s)
-            angles, wall = run(s, pressure, args.res, args.tilt, args.seconds, args.every, args.flip, args.water)
+            angles, shares, wall = run(s, pressure, args.res, args.tilt, args.seconds, args.every, args.flip, args.water,
+                               args.contact_fill)
             line = (f"{pressure} | {s:g} | {gm * 1e3:+.2f} | {'stable' if gm > 0 else 'rolls'} | "
-                    + ", ".join(f"{a:.1f}" for a in angles) + f" | {wall:.0f}")
+                    + ", ".join(f"{a:.1f}" for a in angles) + " | " + ", ".join(f"{v:.3f}" for v in shares)
+                    + f" | {wall:.0f}")
             print(line, flush=True)
             lines.append(line)
     append_table(args.out, lines)
