@@ -20,7 +20,7 @@ particles' velocities) at the listed times. "air" is the cube alone, the transfe
 transfer of a body that starts with C = 0 loses part of the spin once).
 
     python bench/spin_down.py [--res 16 24 32] [--pressures state projection] [--omega 5]
-        [--water task|std] [--out bench/results/spin_down.txt]
+        [--water task|std] [--substep-factor F] [--air] [--out bench/results/spin_down.txt]
 """
 from __future__ import annotations
 
@@ -48,8 +48,9 @@ def spin_rate(x: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.linalg.solve(inertia, L)
 
 
-def run(pressure: str, res: int, omega: float, times: list[float], water: str = "task", liquid_on: bool = True):
-    """(ω_y at each of `times`, wall seconds of the stepping) of the spinning cube."""
+def run(pressure: str, res: int, omega: float, times: list[float], water: str = "task", liquid_on: bool = True,
+        substep_factor: float = 1.0):
+    """(ω_y at each of `times`, wall seconds of the stepping, substeps per 2 ms step) of the spinning cube."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
     from fluidlab_core.apps import validation
@@ -67,6 +68,7 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
         scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, FILL)), [cube]), liquid, name="water")
     scene.add_particles(cube, M.Rigid("spinning", density=DENSITY, bulk_modulus=M.RIGID.bulk_modulus), name="cube")
     validation._substeps(scene, None)
+    scene.substeps = max(1, int(round(scene.substeps * substep_factor)))
     sim = scene.build()
     state = sim.get_state()
     rows = sim.handle("cube").slice
@@ -80,7 +82,7 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
         out.append(float(spin_rate(sim.positions("cube"), sim.velocities("cube"))[1]))
     wall = time.perf_counter() - t0
     fl.runtime.reset()
-    return out, wall
+    return out, wall, scene.substeps
 
 
 def main(argv=None):
@@ -90,6 +92,8 @@ def main(argv=None):
     ap.add_argument("--omega", type=float, default=5.0, help="the start spin about y (rad/s)")
     ap.add_argument("--water", choices=["task", "std"], default="task",
                     help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
+    ap.add_argument("--substep-factor", type=float, default=1.0,
+                    help="the stable substep count times this (more transfers per second)")
     ap.add_argument("--air", action="store_true", help="also the cube alone (no liquid), per resolution")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "spin_down.txt"))
     args = ap.parse_args(argv)
@@ -104,15 +108,15 @@ def main(argv=None):
              "# an inviscid liquid keeps ω after the start's impulse (ω₁ = ω₀ I_b / (I_b + I_a)): the last column "
              "is ω(0.2 s) / ω(20 ms), 1 for no dissipation",
              "# liquid | cells | ω_y (rad/s) at " + ", ".join(f"{t * 1e3:g}" for t in times)
-             + " ms | ω(0.2 s)/ω(20 ms) | wall s"]
+             + " ms | ω(0.2 s)/ω(20 ms) | substeps per 2 ms | wall s"]
     print("\n".join(lines), flush=True)
     cases = [("air", r) for r in args.res] if args.air else []
     cases += [(p, r) for p in args.pressures for r in args.res]
     for pressure, res in cases:
-        omegas, wall = run("state" if pressure == "air" else pressure, res, args.omega, times, args.water,
-                           liquid_on=pressure != "air")
+        omegas, wall, substeps = run("state" if pressure == "air" else pressure, res, args.omega, times,
+                                     args.water, liquid_on=pressure != "air", substep_factor=args.substep_factor)
         keep = omegas[-1] / omegas[1] if omegas[1] else float("nan")
-        line = (f"{pressure} | {res} | " + ", ".join(f"{w:.3f}" for w in omegas) + f" | {keep:.2f} | {wall:.0f}")
+        line = (f"{pressure} | {res} | " + ", ".join(f"{w:.3f}" for w in omegas) + f" | {keep:.2f} | {substeps} | {wall:.0f}")
         print(line, flush=True)
         lines.append(line)
     append_table(args.out, lines)
