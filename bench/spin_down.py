@@ -20,7 +20,7 @@ particles' velocities) at the listed times. "air" is the cube alone, the transfe
 transfer of a body that starts with C = 0 loses part of the spin once).
 
     python bench/spin_down.py [--res 16 24 32] [--pressures state projection] [--omega 5]
-        [--water task|std] [--substep-factor F] [--air] [--out bench/results/spin_down.txt]
+        [--water task|std] [--substep-factor F] [--flip A] [--air] [--out bench/results/spin_down.txt]
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def spin_rate(x: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def run(pressure: str, res: int, omega: float, times: list[float], water: str = "task", liquid_on: bool = True,
-        substep_factor: float = 1.0):
+        substep_factor: float = 1.0, flip: float | None = None):
     """(ω_y at each of `times`, wall seconds of the stepping, substeps per 2 ms step) of the spinning cube."""
     import fluidlab_core as fl
     from fluidlab_core import materials as M
@@ -59,7 +59,7 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
     from fluidlab_core.tasks.common import Without
 
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, HEIGHT), grid_res=res, dt=2e-3, substeps=1,
-                     gravity=(0, 0, 0), pressure=pressure)
+                     gravity=(0, 0, 0), pressure=pressure, flip=flip)
     c = WIDTH / 2
     z0 = FILL - 0.03 - SIDE
     cube = Box((c - SIDE / 2, c - SIDE / 2, z0), (c + SIDE / 2, c + SIDE / 2, z0 + SIDE))
@@ -94,6 +94,8 @@ def main(argv=None):
                     help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
     ap.add_argument("--substep-factor", type=float, default=1.0,
                     help="the stable substep count times this (more transfers per second)")
+    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
+                    "0.99 on the projection and 0, APIC, on the default liquid)")
     ap.add_argument("--air", action="store_true", help="also the cube alone (no liquid), per resolution")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "spin_down.txt"))
     args = ap.parse_args(argv)
@@ -104,7 +106,9 @@ def main(argv=None):
     water = "the tasks' water" if args.water == "task" else "the catalogue's water"
     lines = [f"# bench/spin_down.py, {time.strftime('%Y-%m-%d %H:%M')}, CPU, float32: a 4 cm rigid cube of "
              f"{DENSITY:g} kg/m³ spinning at {args.omega:g} rad/s about y, 3 cm under {water} in a closed 12 cm box, "
-             "no gravity, the water at rest",
+             "no gravity, the water at rest"
+             + ("" if args.flip is None else f", flip {args.flip:g}") + ("" if args.substep_factor == 1.0 else
+                                                                        f", {args.substep_factor:g}x the substeps"),
              "# an inviscid liquid keeps ω after the start's impulse (ω₁ = ω₀ I_b / (I_b + I_a)): the last column "
              "is ω(0.2 s) / ω(20 ms), 1 for no dissipation",
              "# liquid | cells | ω_y (rad/s) at " + ", ".join(f"{t * 1e3:g}" for t in times)
@@ -114,7 +118,8 @@ def main(argv=None):
     cases += [(p, r) for p in args.pressures for r in args.res]
     for pressure, res in cases:
         omegas, wall, substeps = run("state" if pressure == "air" else pressure, res, args.omega, times,
-                                     args.water, liquid_on=pressure != "air", substep_factor=args.substep_factor)
+                                     args.water, liquid_on=pressure != "air", substep_factor=args.substep_factor,
+                                     flip=args.flip)
         keep = omegas[-1] / omegas[1] if omegas[1] else float("nan")
         line = (f"{pressure} | {res} | " + ", ".join(f"{w:.3f}" for w in omegas) + f" | {keep:.2f} | {substeps} | {wall:.0f}")
         print(line, flush=True)
