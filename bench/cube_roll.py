@@ -114,7 +114,7 @@ def main(argv=None):
     ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
                     "0.99 on the projection and 0, APIC, on the default liquid)")
     ap.add_argument("--water", choices=["task", "std"], default="task",
-                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
+                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (bulk modulus 2.78e5 Pa, sound speed 16.7 m/s)")
     ap.add_argument("--contact-fill", type=float, default=0.97,
                     help="Scene(contact_fill=...) on the default liquid: the node fill at which the liquid and the "
                     "body share one velocity (engine/grid.py); above 1 fewer nodes share it, and 2 none")

@@ -91,7 +91,7 @@ def main(argv=None):
     ap.add_argument("--pressures", nargs="+", default=["state", "projection"], choices=["projection", "state"])
     ap.add_argument("--omega", type=float, default=5.0, help="the start spin about y (rad/s)")
     ap.add_argument("--water", choices=["task", "std"], default="task",
-                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (its real bulk modulus)")
+                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (bulk modulus 2.78e5 Pa, sound speed 16.7 m/s)")
     ap.add_argument("--substep-factor", type=float, default=1.0,
                     help="the stable substep count times this (more transfers per second)")
     ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
