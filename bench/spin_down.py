@@ -16,8 +16,8 @@ transfer's) dissipation. With a damping c alone, ω decays as e^(−t/τ), τ = 
 Set-up: a 4 cm rigid cube of 400 kg/m³ (the Gathering foam's density) centred in a closed 12 cm box filled with
 the tasks' water to 11 cm (the cube 3 cm under the surface, 4 cm over the floor), gravity off, the water at rest,
 the cube spinning at --omega rad/s about y. Each row: ω_y of the cube (the least-squares rigid rotation of its
-particles' velocities) at the listed times. "air" is the cube alone, the transfer's own share (APIC's first
-transfer of a body that starts with C = 0 loses part of the spin once).
+particles' velocities) at the listed times, the cube started with the rigid motion's velocities and APIC's
+C = [ω]× (validation._set_rigid_motion). "air" is the cube alone, which keeps its spin.
 
     python bench/spin_down.py [--res 16 24 32] [--pressures state projection] [--omega 5]
         [--water task|std] [--substep-factor F] [--flip A] [--air] [--out bench/results/spin_down.txt]
@@ -71,10 +71,7 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
     scene.substeps = max(1, int(round(scene.substeps * substep_factor)))
     sim = scene.build()
     state = sim.get_state()
-    rows = sim.handle("cube").slice
-    r = state.x[rows].astype(np.float64)
-    r -= r.mean(axis=0)
-    state.v[rows] = np.cross(np.array([0.0, omega, 0.0]), r).astype(state.v.dtype)
+    validation._set_rigid_motion(state, sim.handle("cube").slice, np.zeros(3), np.array([0.0, omega, 0.0]))
     sim.set_state(state)
     out, t0 = [], time.perf_counter()
     for t in times:
