@@ -10,8 +10,10 @@ Physics. A rigid cube of side a spinning at ω₀ about a horizontal axis, start
 the liquid its potential flow in the first instant (an inviscid liquid takes the impulse at once); the body keeps
 ω₁ = ω₀ I_b / (I_b + I_a), with I_a the liquid's added moment of inertia for the rotation, and from then on an
 inviscid liquid exerts no torque on a body turning steadily (the kinetic energy ½ (I_b + I_a) ω² is conserved;
-Lamb, Hydrodynamics, ch. VI, on the motion of a solid through a liquid). So after the start ω stays at ω₁: what it loses later is the coupling's (or the
-transfer's) dissipation. With a damping c alone, ω decays as e^(−t/τ), τ = (I_b + I_a) / c.
+Lamb, Hydrodynamics, ch. VI, on the motion of a solid through a liquid). So after the start ω stays at ω₁: what
+it loses later is the coupling's (or the transfer's) dissipation. With a constant damping c alone, ω would decay as
+e^(−t/τ), τ = (I_b + I_a) / c; a no-slip surface whose angular momentum spreads into the liquid by a viscosity
+gives ω ∝ 1/t instead (docs/engine.md, "A floating cube's roll").
 
 Set-up: a 4 cm rigid cube of 400 kg/m³ (the Gathering foam's density) centred in a closed 12 cm box filled with
 the tasks' water to 11 cm (the cube 3 cm under the surface, 4 cm over the floor), gravity off, the water at rest,
