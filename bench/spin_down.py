@@ -13,7 +13,7 @@ inviscid liquid exerts no torque on a body turning steadily (the kinetic energy 
 Lamb, Hydrodynamics, ch. VI, on the motion of a solid through a liquid). So after the start ω stays at ω₁: what
 it loses later is the coupling's (or the transfer's) dissipation. With a constant damping c alone, ω would decay as
 e^(−t/τ), τ = (I_b + I_a) / c; a no-slip surface whose angular momentum spreads into the liquid by a viscosity
-gives ω ∝ 1/t instead (docs/engine.md, "A floating cube's roll").
+gives a decay that slows as a power of t instead (here about 1/t; docs/engine.md, "A floating cube's roll").
 
 Set-up: a 4 cm rigid cube of 400 kg/m³ (the Gathering foam's density) centred in a closed 12 cm box filled with
 the tasks' water to 11 cm (the cube 3 cm under the surface, 4 cm over the floor), gravity off, the water at rest,
