@@ -43,6 +43,26 @@ def metacentric_height(s: float, a: float = SIDE) -> float:
     return a / (12.0 * s) - a * (1.0 - s) / 2.0
 
 
+WATERS = {"task": "the tasks' water", "std": "the catalogue's water"}  # --water's choices, as the headers name them
+
+
+def liquid_of(water: str):
+    """The liquid --water names: the tasks' water (sound speed 4 m/s) or the catalogue's (2.78e5 Pa, 16.7 m/s)."""
+    from fluidlab_core import materials as M
+    from fluidlab_core.tasks import common
+
+    return common.WATER if water == "task" else M.WATER
+
+
+def add_liquid_options(ap):
+    """--flip and --water (this script's and bench/spin_down.py's)."""
+    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
+                    "0.99 on the projection and 0, APIC, on the default liquid)")
+    ap.add_argument("--water", choices=sorted(WATERS), default="task",
+                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (bulk modulus 2.78e5 Pa, sound "
+                    "speed 16.7 m/s)")
+
+
 def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None = None, water: str = "task",
           contact_fill: float = 0.97):
     """(simulator, body-frame z axes of the cube's particles' fit): the tilted cube at Archimedes' depth."""
@@ -63,8 +83,7 @@ def build(s: float, pressure: str, res: int, tilt_deg: float, flip: float | None
     cube = Mesh(str(path), pose=pose)
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, 0.12), grid_res=res, dt=2e-3, substeps=1,
                      pressure=pressure, flip=flip, contact_fill=contact_fill)
-    liquid = common.WATER if water == "task" else M.WATER
-    scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, LEVEL)), [cube]), liquid, name="water")
+    scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, LEVEL)), [cube]), liquid_of(water), name="water")
     body = M.Rigid(f"rigid_{s:g}", density=s * common.WATER.density, bulk_modulus=M.RIGID.bulk_modulus)
     scene.add_particles(cube, body, name="cube")
     validation._substeps(scene, None)
@@ -111,10 +130,7 @@ def main(argv=None):
     ap.add_argument("--tilt", type=float, default=5.0, help="the start tilt about y (degrees)")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--every", type=float, default=0.1, help="a column every this many seconds")
-    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
-                    "0.99 on the projection and 0, APIC, on the default liquid)")
-    ap.add_argument("--water", choices=["task", "std"], default="task",
-                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (bulk modulus 2.78e5 Pa, sound speed 16.7 m/s)")
+    add_liquid_options(ap)
     ap.add_argument("--contact-fill", type=float, default=0.97,
                     help="Scene(contact_fill=...) on the default liquid: the node fill at which the liquid and the "
                     "body share one velocity (engine/grid.py); above 1 fewer nodes share it, and 2 none")
@@ -124,7 +140,7 @@ def main(argv=None):
 
     fl.init(arch="cpu")
     times = [args.every * (k + 1) for k in range(int(round(args.seconds / args.every)))]
-    water = "the tasks' water" if args.water == "task" else "the catalogue's water"
+    water = WATERS[args.water]
     fill = "" if args.contact_fill == 0.97 else f", contact_fill {args.contact_fill:g}"
     flip = "the Scene's flip (0.99 on the projection, APIC on the default)" if args.flip is None else f"flip {args.flip:g}"
     lines = [f"# bench/cube_roll.py, {time.strftime('%Y-%m-%d %H:%M')}, CPU, float32: a 4 cm rigid cube in 6 cm of "

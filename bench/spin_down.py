@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cube_roll import WATERS, add_liquid_options, liquid_of  # bench/cube_roll.py (this script's folder)
 from results_file import append_table  # bench/results_file.py (this script's folder is on the path)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +58,6 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
     from fluidlab_core import materials as M
     from fluidlab_core.apps import validation
     from fluidlab_core.shapes import Box
-    from fluidlab_core.tasks import common
     from fluidlab_core.tasks.common import Without
 
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, HEIGHT), grid_res=res, dt=2e-3, substeps=1,
@@ -66,8 +66,7 @@ def run(pressure: str, res: int, omega: float, times: list[float], water: str = 
     z0 = FILL - 0.03 - SIDE
     cube = Box((c - SIDE / 2, c - SIDE / 2, z0), (c + SIDE / 2, c + SIDE / 2, z0 + SIDE))
     if liquid_on:
-        liquid = common.WATER if water == "task" else M.WATER
-        scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, FILL)), [cube]), liquid, name="water")
+        scene.add_particles(Without(Box((0, 0, 0), (WIDTH, WIDTH, FILL)), [cube]), liquid_of(water), name="water")
     scene.add_particles(cube, M.Rigid("spinning", density=DENSITY, bulk_modulus=M.RIGID.bulk_modulus), name="cube")
     validation._substeps(scene, None)
     scene.substeps = max(1, int(round(scene.substeps * substep_factor)))
@@ -89,12 +88,9 @@ def main(argv=None):
     ap.add_argument("--res", nargs="+", type=int, default=[16, 24, 32])
     ap.add_argument("--pressures", nargs="+", default=["state", "projection"], choices=["projection", "state"])
     ap.add_argument("--omega", type=float, default=5.0, help="the start spin about y (rad/s)")
-    ap.add_argument("--water", choices=["task", "std"], default="task",
-                    help="the tasks' water (sound speed 4 m/s) or the catalogue's (bulk modulus 2.78e5 Pa, sound speed 16.7 m/s)")
     ap.add_argument("--substep-factor", type=float, default=1.0,
                     help="the stable substep count times this (more transfers per second)")
-    ap.add_argument("--flip", type=float, default=None, help="Scene(flip=...): AFLIP's share (default: the Scene's, "
-                    "0.99 on the projection and 0, APIC, on the default liquid)")
+    add_liquid_options(ap)
     ap.add_argument("--air", action="store_true", help="also the cube alone (no liquid), per resolution")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "spin_down.txt"))
     args = ap.parse_args(argv)
@@ -102,7 +98,7 @@ def main(argv=None):
 
     fl.init(arch="cpu")
     times = [0.002, 0.02, 0.05, 0.1, 0.2]
-    water = "the tasks' water" if args.water == "task" else "the catalogue's water"
+    water = WATERS[args.water]
     lines = [f"# bench/spin_down.py, {time.strftime('%Y-%m-%d %H:%M')}, CPU, float32: a 4 cm rigid cube of "
              f"{DENSITY:g} kg/m³ spinning at {args.omega:g} rad/s about y, 3 cm under {water} in a closed 12 cm box, "
              "no gravity, the water at rest"
