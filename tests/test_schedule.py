@@ -23,10 +23,16 @@ def stalled(rate: float, after: int = 40):
 
 
 def test_500_hz_catches_up_with_its_timeline_without_bunching():
-    lates, gaps = stalled(500.0)
+    """The stall (30 ms) is given back at T - T / 2 = 1 ms per command, so the stream is back within 5 ms of its
+    timeline some 25 commands later, and no two commands come closer than T / 2. How many commands that takes
+    is the machine's: a wake-up the OS delays is lateness of its own, given back at the same rate. With three
+    test processes on the two cores (2026-12-07) 14.4 ms were left after 40 commands, falling by 1.00 ms a
+    command (18.4, 17.4, 16.4, 15.4, 14.4 ms), where the test once stopped; it now runs 200 commands and asserts
+    the return to the timeline, the rate being what the gaps' bound holds."""
+    lates, gaps = stalled(500.0, after=200)
     assert lates[5] > 0.8 * STALL
-    # back on the timeline: the stall (30 ms) is given back at 1 ms per command within 30-odd commands
-    assert min(lates[-5:]) < 0.005, lates
+    back = next((k for k in range(6, len(lates)) if lates[k] < 0.005), None)
+    assert back is not None, lates
     assert min(gaps) >= 0.001 - 2e-4, min(gaps)  # never closer than T / 2 (less the clock's spin tolerance)
 
 
