@@ -107,7 +107,7 @@ import taichi as ti
 ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[1]), offline_cache=True, log_level="error")
 from fluidlab_core.engine.poisson import FLUID, SOLID, PoissonSolver
 n = 20
-solver = PoissonSolver((n, n, n), (False,) * 6)
+solver = PoissonSolver((n, n, n), (False,) * 6, serial_cells=0)  # parallel loops on every level
 flags = np.full((n, n, n), FLUID, np.int8)
 flags[5:10, 5:10, 6:13] = SOLID
 solver.flags[0].from_numpy(flags)
@@ -121,8 +121,14 @@ gpu_order.update_flags(flags)
 gpu_order.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
 rep_gpu = gpu_order.solve(1e-6, 200)
 difference = float(np.abs(gpu_order.x.to_numpy() - x).max() / np.abs(x).max())
+serial = PoissonSolver((n, n, n), (False,) * 6)  # the CPU's default at this size: every level's loops serial
+assert serial.serial_cells >= n ** 3
+serial.flags[0].from_numpy(flags)
+serial.update_flags(flags)
+serial.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
+rep_serial = serial.solve(1e-6, 200)
 print(rep["iterations"], rep["removed_norm"].hex(), hashlib.sha1(x.tobytes()).hexdigest(), rep_gpu["iterations"],
-      difference)
+      difference, rep_serial["iterations"], hashlib.sha1(serial.x.to_numpy().tobytes()).hexdigest())
 """
 
 
@@ -131,7 +137,8 @@ def test_the_pressure_solve_gives_the_same_bits_with_any_number_of_threads():
     """The pressure solve's sums run in a fixed order (engine/poisson.py, "Determinism"): the same right-hand side
     solved in processes with 1, 2 and 3 CPU threads gives the same solution bit for bit (a closed 20³ box with a
     solid block: one closed region, so the region means are taken too), and the GPU's order of the sums, run here,
-    gives the same solution to their rounding. With Taichi's parallel reductions the
+    gives the same solution to their rounding. The serial loops that the CPU runs on grids this small ("Small
+    grids") give the parallel loops' bits. With Taichi's parallel reductions the
     three differed (6 iterations each, three different solutions), and under load the same process could give
     two different solutions of one input: AirCirculation's loss took one of two values and its window gradient
     test failed in some suite runs (docs/engine.md)."""
@@ -150,6 +157,8 @@ def test_the_pressure_solve_gives_the_same_bits_with_any_number_of_threads():
     assert outs[1] == outs[0] and outs[2] == outs[0]
     # the GPU's order (columns along i), run here: the same solve to the rounding of its sums
     assert outs[0][3] == outs[0][0] and float(outs[0][4]) < 1e-9
+    # serial loops: the same iterations and bits as the parallel ones
+    assert outs[0][5] == outs[0][0] and outs[0][6] == outs[0][2]
 
 
 def test_a_flow_too_fast_or_not_finite_stops_the_run_naming_the_step_and_field(room):

@@ -27,6 +27,14 @@ Cost: each level's down leg (smoothing, residual, restriction) and up leg (prolo
 launch, the coarsest solve one more, a CG iteration four more; the kernels close over their level's fields, so a
 call costs no template dispatch (a V-cycle of ~30 template-kernel calls cost more in Python than in arithmetic).
 
+Small grids: on the CPU each parallel loop of a kernel is dispatched to the thread pool, which costs tens of
+microseconds whatever the loop's size; a V-cycle leg holds about eight such loops, and a CG iteration of a small
+grid was mostly that (AirCirculation's small house, 40 × 27 × 3 cells: 4 ms an iteration, 380 µs a down leg).
+So on the CPU the loops of every level with at most SERIAL_CELLS cells run serially, in the calling thread
+(`ti.loop_config(serialize=True)`; FLUIDLAB_POISSON_SERIAL_CELLS overrides the threshold, 0 turns it off). The
+arithmetic is the same and so are the bits: a colour's Gauss-Seidel updates do not read each other, and the sums
+keep their fixed order (`bench/gas_poisson_serial.py`).
+
 Stopping: ‖r_k‖₂ ≤ tol ‖b‖₂ (relative residual, b the compatible right-hand side), or the iteration cap; the
 caller decides whether missing the tolerance raises or warns (gas.py). All solver vectors are float64 whatever
 the working precision, so that a relative residual of 1e-6 is reachable on large grids.
@@ -43,10 +51,13 @@ gradient as 0.015033 or 0.015102 (tests/test_air_circulation.py, 2026-12-06), so
 rollout did not agree.
 """
 
+import os
+
 import numpy as np
 import taichi as ti
 
 SOLID, FLUID = 0, 1
+SERIAL_CELLS = 32768  # on the CPU, levels of at most this many cells run their loops serially ("Small grids")
 
 
 def level_shapes(shape, min_cells: int = 4) -> list[tuple[int, int, int]]:
@@ -105,14 +116,15 @@ def _weighted_operator(w6):
     return diag_off
 
 
-def _smoother(flags, r, z, diag_off):
+def _smoother(flags, r, z, diag_off, serial: bool = False):
     shape = tuple(z.shape)
     half = (shape[0], shape[1], -(-shape[2] // 2))
 
     @ti.func
     def half_sweep(color: ti.template()):
         """One Gauss-Seidel half-sweep of L z = r over the cells of one colour ((i + j + k) % 2): the loop visits
-        only that colour's cells."""
+        only that colour's cells (which do not read each other: any order gives the same bits)."""
+        ti.loop_config(serialize=serial)
         for i, j, kk in ti.ndrange(*half):
             k = 2 * kk + (i + j + color) % 2
             if k < shape[2]:
@@ -186,8 +198,11 @@ class PoissonSolver:
     columns_along_i: the order of the sums (module docstring, "Determinism"); None: along i on a GPU, else along k."""
 
     def __init__(self, shape, open_walls, pre_sweeps: int = 2, post_sweeps: int = 2, bottom_sweeps: int = 30,
-                 weighted: bool = False, columns_along_i: bool | None = None):
+                 weighted: bool = False, columns_along_i: bool | None = None, serial_cells: int | None = None):
         self.shape = tuple(int(n) for n in shape)
+        on_cpu = ti.lang.impl.current_cfg().arch not in (ti.cuda, ti.vulkan, ti.metal, ti.opengl)
+        self.serial_cells = (int(serial_cells) if serial_cells is not None
+                             else int(os.environ.get("FLUIDLAB_POISSON_SERIAL_CELLS", SERIAL_CELLS)) if on_cpu else 0)
         self.open_walls = tuple(bool(b) for b in open_walls)
         self.shapes = level_shapes(self.shape)
         self.n_levels = len(self.shapes)
@@ -235,6 +250,10 @@ class PoissonSolver:
         self._bottom = self._make_bottom()
         self._make_cg()
 
+    def _serial(self, lv: int) -> bool:
+        """Whether level lv's loops run serially (module docstring, "Small grids")."""
+        return self.serial_cells > 0 and int(np.prod(self.shapes[lv])) <= self.serial_cells
+
     # --- multigrid legs, one kernel each ----------------------------------------------------------------------
     def _restriction_factor(self, lv: int) -> float:
         """r_2h = f Σ_children r_h with f = 4 / children: the coarse stencil is the Laplacian times (2h)², the
@@ -246,26 +265,30 @@ class PoissonSolver:
     def _make_down(self, lv: int):
         flags, r, z, rc, res = self.flags[lv], self.r[lv], self.z[lv], self.r[lv + 1], self.res[lv]
         op = self._ops[lv]
-        sweep = _smoother(flags, r, z, op)
+        serial = self._serial(lv)
+        sweep = _smoother(flags, r, z, op, serial)
         sweeps, factor = self.pre_sweeps, self._restriction_factor(lv)
-        fine = self.shapes[lv]
+        fine, coarse = self.shapes[lv], self.shapes[lv + 1]
 
         @ti.kernel
         def down():
             """z = 0; pre-smoothing (red then black); the residual r − L z; the coarse level's right-hand side
             f Σ_children (r − L z), gathered per coarse cell (no atomics)."""
-            for I in ti.grouped(z):
+            ti.loop_config(serialize=serial)
+            for I in ti.grouped(ti.ndrange(*fine)):
                 z[I] = 0.0
             for _ in ti.static(range(sweeps)):
                 sweep(0)
                 sweep(1)
-            for I in ti.grouped(z):
+            ti.loop_config(serialize=serial)
+            for I in ti.grouped(ti.ndrange(*fine)):
                 v = ti.f64(0.0)
                 if flags[I] == FLUID:
                     diag, off = op(z, I)
                     v = r[I] - (diag * z[I] - off)
                 res[I] = v
-            for J in ti.grouped(rc):
+            ti.loop_config(serialize=serial)
+            for J in ti.grouped(ti.ndrange(*coarse)):
                 acc = ti.f64(0.0)
                 for a, b, c in ti.static(ti.ndrange(2, 2, 2)):
                     I = 2 * J + ti.Vector([a, b, c])
@@ -279,13 +302,15 @@ class PoissonSolver:
 
     def _make_up(self, lv: int):
         flags, r, z, zc = self.flags[lv], self.r[lv], self.z[lv], self.z[lv + 1]
-        sweep = _smoother(flags, r, z, self._ops[lv])
-        sweeps = self.post_sweeps
+        serial = self._serial(lv)
+        sweep = _smoother(flags, r, z, self._ops[lv], serial)
+        sweeps, fine = self.post_sweeps, self.shapes[lv]
 
         @ti.kernel
         def up():
             """z += the coarse correction (injection); post-smoothing (black then red)."""
-            for I in ti.grouped(z):
+            ti.loop_config(serialize=serial)
+            for I in ti.grouped(ti.ndrange(*fine)):
                 z[I] += zc[I // 2]
             for _ in ti.static(range(sweeps)):
                 sweep(1)
@@ -348,6 +373,7 @@ class PoissonSolver:
         nx, ny, nz = self.shape
         along_i = self.columns_along_i
         n1, n2, n3 = (ny, nz, nx) if along_i else (nx, ny, nz)  # columns (i1, i2), each summed along i3
+        serial = self._serial(0)
 
         @ti.func
         def cell(i1, i2, i3):
@@ -363,11 +389,13 @@ class PoissonSolver:
 
             @ti.kernel
             def kernel(alpha: ti.f64) -> ti.f64:
+                ti.loop_config(serialize=serial)
                 for i1, i2 in ti.ndrange(n1, n2):
                     s = ti.f64(0.0)
                     for i3 in range(n3):
                         s += term(cell(i1, i2, i3), alpha)
                     part[i1, i2] = s
+                ti.loop_config(serialize=serial)
                 for i1 in range(n1):
                     s = ti.f64(0.0)
                     for i2 in range(n2):
@@ -422,7 +450,8 @@ class PoissonSolver:
 
         @ti.kernel
         def next_direction(beta: ti.f64):
-            for I in ti.grouped(p):
+            ti.loop_config(serialize=serial)
+            for I in ti.grouped(ti.ndrange(nx, ny, nz)):
                 p[I] = z0[I] + beta * p[I]
 
         @ti.kernel
