@@ -7,7 +7,7 @@ Each (size, setting) runs in a fresh process (the threshold is read when the sol
 the conditioner turning at 0.8 rad/s, a few warm-up steps (which compile), then `--steps` timed steps; the wall
 time per step, the pressure solves' share of it and the CG iterations per step are reported, the median over
 `--rounds` alternating rounds. Each process also prints its loss after the timed steps (the task's loss over
-them) as hex, which must be the same bits with and without the serial loops. Writes
+them) as hex, which must be the same bits with and without the serial loops. Appends its table to
 bench/results/gas_poisson_serial_cpu.txt.
 """
 from __future__ import annotations
@@ -21,6 +21,8 @@ import subprocess
 import sys
 from datetime import date
 from pathlib import Path
+
+from results_file import append_table  # bench/results_file.py (this script's folder is on the path)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,10 +105,8 @@ def main():
         shape = "x".join(map(str, res[True][0]["shape"]))
         lines.append(f"{size:8s} {shape:>14s} {off:12.1f} {on:11.1f} {on / off:7.2f} "
                      f"{share[0]:9.0%} / {share[1]:4.0%} {res[True][0]['cg_per_step']:11.1f} {same}")
-    out = ROOT / "bench" / "results" / "gas_poisson_serial_cpu.txt"
-    out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-    print(f"wrote {out}")
+    append_table(ROOT / "bench" / "results" / "gas_poisson_serial_cpu.txt", lines)
 
 
 if __name__ == "__main__":
