@@ -60,6 +60,19 @@ SOLID, FLUID = 0, 1
 SERIAL_CELLS = 32768  # on the CPU, levels of at most this many cells run their loops serially ("Small grids")
 
 
+def _default_serial_cells() -> int:
+    """SERIAL_CELLS, or FLUIDLAB_POISSON_SERIAL_CELLS, on the CPU; 0 (parallel loops everywhere) on a GPU."""
+    if ti.lang.impl.current_cfg().arch not in (ti.x64, ti.arm64):
+        return 0
+    text = os.environ.get("FLUIDLAB_POISSON_SERIAL_CELLS", "").strip()
+    if not text:
+        return SERIAL_CELLS
+    if not text.isdigit():
+        raise ValueError(f"FLUIDLAB_POISSON_SERIAL_CELLS must be a number of cells (0 turns the serial loops off), "
+                         f"got {text!r}")
+    return int(text)
+
+
 def level_shapes(shape, min_cells: int = 4) -> list[tuple[int, int, int]]:
     """Grid shapes of the multigrid levels: halve (rounding up) until the largest side is at most `min_cells`."""
     shapes = [tuple(int(n) for n in shape)]
@@ -195,14 +208,14 @@ class PoissonSolver:
 
     open_walls: 6 bools, (x−, x+, y−, y+, z−, z+): which domain walls are Dirichlet (y = 0 outside).
     The fine level's cell flags (`flags[0]`, FLUID or SOLID) are written by the gas solver before `solve`.
-    columns_along_i: the order of the sums (module docstring, "Determinism"); None: along i on a GPU, else along k."""
+    columns_along_i: the order of the sums (module docstring, "Determinism"); None: along i on a GPU, else along k.
+    serial_cells: the levels of at most this many cells run their loops serially (module docstring, "Small grids");
+    None: SERIAL_CELLS on the CPU (or FLUIDLAB_POISSON_SERIAL_CELLS), 0 on a GPU."""
 
     def __init__(self, shape, open_walls, pre_sweeps: int = 2, post_sweeps: int = 2, bottom_sweeps: int = 30,
                  weighted: bool = False, columns_along_i: bool | None = None, serial_cells: int | None = None):
         self.shape = tuple(int(n) for n in shape)
-        on_cpu = ti.lang.impl.current_cfg().arch not in (ti.cuda, ti.vulkan, ti.metal, ti.opengl)
-        self.serial_cells = (int(serial_cells) if serial_cells is not None
-                             else int(os.environ.get("FLUIDLAB_POISSON_SERIAL_CELLS", SERIAL_CELLS)) if on_cpu else 0)
+        self.serial_cells = int(serial_cells) if serial_cells is not None else _default_serial_cells()
         self.open_walls = tuple(bool(b) for b in open_walls)
         self.shapes = level_shapes(self.shape)
         self.n_levels = len(self.shapes)
