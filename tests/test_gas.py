@@ -107,29 +107,27 @@ import taichi as ti
 ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[1]), offline_cache=True, log_level="error")
 from fluidlab_core.engine.poisson import FLUID, SOLID, PoissonSolver
 n = 20
-solver = PoissonSolver((n, n, n), (False,) * 6, serial_cells=0)  # parallel loops on every level
 flags = np.full((n, n, n), FLUID, np.int8)
 flags[5:10, 5:10, 6:13] = SOLID
-solver.flags[0].from_numpy(flags)
-solver.update_flags(flags)
-solver.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
-rep = solver.solve(1e-6, 200)
-x = solver.x.to_numpy()
-gpu_order = PoissonSolver((n, n, n), (False,) * 6, columns_along_i=True)  # a GPU's order of the sums, here
-gpu_order.flags[0].from_numpy(flags)
-gpu_order.update_flags(flags)
-gpu_order.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
-rep_gpu = gpu_order.solve(1e-6, 200)
-difference = float(np.abs(gpu_order.x.to_numpy() - x).max() / np.abs(x).max())
+b = np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID)
+
+
+def solved(**options):
+    solver = PoissonSolver((n, n, n), (False,) * 6, **options)
+    solver.flags[0].from_numpy(flags)
+    solver.update_flags(flags)
+    solver.b.from_numpy(b)
+    return solver, solver.solve(1e-6, 200), solver.x.to_numpy()
+
+
+_, rep, x = solved(serial_cells=0)  # parallel loops on every level
+_, rep_gpu, x_gpu = solved(columns_along_i=True)  # a GPU's order of the sums, here
+difference = float(np.abs(x_gpu - x).max() / np.abs(x).max())
 serial_out = ""
 if sys.argv[1] == "2":  # once: the CPU's default at this size, every level's loops serial (its own kernels)
-    serial = PoissonSolver((n, n, n), (False,) * 6)
+    serial, rep_serial, x_serial = solved()
     assert serial.serial_cells >= n ** 3
-    serial.flags[0].from_numpy(flags)
-    serial.update_flags(flags)
-    serial.b.from_numpy(np.random.default_rng(0).standard_normal((n, n, n)) * (flags == FLUID))
-    rep_serial = serial.solve(1e-6, 200)
-    serial_out = f" {rep_serial['iterations']} {hashlib.sha1(serial.x.to_numpy().tobytes()).hexdigest()}"
+    serial_out = f" {rep_serial['iterations']} {hashlib.sha1(x_serial.tobytes()).hexdigest()}"
 print(rep["iterations"], rep["removed_norm"].hex(), hashlib.sha1(x.tobytes()).hexdigest(), rep_gpu["iterations"],
       str(difference) + serial_out)
 """
