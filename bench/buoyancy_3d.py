@@ -24,7 +24,10 @@ particles below that surface (share), both against the 99th percentile of the fa
 below the surface that the liquid's volume Σ V⁰ J fills the tank to (`vol share`, `vol surf mm`,
 validation.submerged_by_volume), which a rough surface does not read high (the percentile sat 1.2–2.6 mm above
 it in the catalogue's water in the runs of 2026-11-29, 0.03–0.07 of the side; −0.6 to +1.1 mm in the tasks'
-water). The header says whether the engine had one velocity field or two
+water). The header gives the cube's volume over its rest volume (Σ V⁰ det F / Σ V⁰, least and most over the rows):
+a body that the pressure compresses displaces less, and floats deeper by that ratio. The particle `share` moves in
+steps of one particle layer (1/11 of the side at 16 cells); `vol share` does not. The header says whether the engine
+had one velocity field or two
 (engine/grid.py; an engine from before the two fields has one). Appends its table to
 bench/results/buoyancy_3d.txt unless --no-save.
 """
@@ -125,10 +128,12 @@ def main():
     c = width / 2
     dx, s = width / args.res, scene.particle_spacing
     t0, rows, series = time.time(), [], []
+    rest_volume, volume_ratios = float(sim.volumes("cube").sum()), []  # the cube starts undeformed (F = I)
     while sim.time < args.seconds - 1e-9:
         sim.step(n=int(round(args.every / scene.dt)))
         xc = sim.positions("cube")
         vshare, vsurface, x_water = validation.cube_volume_share(sim, width)
+        volume_ratios.append(float(sim.volumes("cube").sum()) / rest_volume)
         depth, share, surface = validation.submerged(x_water, xc, (c, c), b, dx, s)
         series.append((sim.time, depth, share, vshare))
         rows.append(f"{sim.time:>5.1f} {depth:>9.3f} {share:>9.3f} {surface * 1e3:>10.1f} {xc[:, 2].mean() * 1e3:>10.1f}"
@@ -147,7 +152,8 @@ def main():
     text = "\n".join([f"{what} of {rho:g} kg/m³ (λ × {args.body_bulk_factor:g}) in {args.liquid} water "
                       f"(λ × {args.bulk_factor:g}), {fields}, "
                       f"{width * 100:g} cm tank, {args.res} cells, {start}: {len(sim.positions())} "
-                      f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s",
+                      f"particles, {scene.substeps} substeps, {time.time() - t0:.0f} s; the cube's volume over its rest "
+                      f"volume {min(volume_ratios):.4f}-{max(volume_ratios):.4f}",
                       f"{'t s':>5} {'depth / b':>9} {'share':>9} {'surface mm':>10} {'cube z mm':>10} {'vol share':>9}"
                       f" {'vol surf mm':>10}", *rows,
                       *per_second(series, rho / M.WATER.density)]) + "\n"
