@@ -60,9 +60,14 @@ SOLID, FLUID = 0, 1
 SERIAL_CELLS = 32768  # on the CPU, levels of at most this many cells run their loops serially ("Small grids")
 
 
+def _on_cpu() -> bool:
+    """Whether Taichi runs on the CPU (the defaults below differ between the CPU and a GPU)."""
+    return ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64)
+
+
 def _default_serial_cells() -> int:
     """SERIAL_CELLS, or FLUIDLAB_POISSON_SERIAL_CELLS, on the CPU; 0 (parallel loops everywhere) on a GPU."""
-    if ti.lang.impl.current_cfg().arch not in (ti.x64, ti.arm64):
+    if not _on_cpu():
         return 0
     text = os.environ.get("FLUIDLAB_POISSON_SERIAL_CELLS", "").strip()
     if not text:
@@ -236,8 +241,7 @@ class PoissonSolver:
         self._region_cells = None  # (n_closed,) float: cells per closed region
         self._region_means = np.zeros(self.max_regions)  # the host's copy of region_mean
         # the sums' columns (module docstring, "Determinism"): along i on a GPU, along k on the CPU
-        self.columns_along_i = (ti.lang.impl.current_cfg().arch == ti.cuda if columns_along_i is None
-                                else bool(columns_along_i))
+        self.columns_along_i = not _on_cpu() if columns_along_i is None else bool(columns_along_i)
         nx, ny, nz = self.shape
         outer = (ny, nz) if self.columns_along_i else (nx, ny)
         self.part = ti.field(f64, shape=outer)  # a sum's partial over each column of cells
