@@ -52,8 +52,8 @@ tools in the projection", has the measurements.
 
 Deformable solids (elastic, plastic; in a scene without a rigid body). They keep the solids' velocity field and
 their own stress; each of its nodes' velocities v_K (mass m_K) is an unknown of the same solve, as the rigid body's
-q is: a face between I and J has the solids' share σ_f from s̄ = ½ (s_I + s_J) (s: the solids' volume share of
-the node's cell; SOFT_SHARP undoes the B-spline's smearing; 1 where a node is SOFT, the solids' without liquid),
+q is: a face between I and J has the solids' share σ_f of its Δx³ box, from their particles' boxes (soft_faces; 1
+where a node is SOFT: the solids' volume share s of its cell at least FILL and no liquid),
 their velocity u_f = Σ_K c_fK v_K·e_d with c_fK = m_K/(m_I + m_J) over its two nodes, and the pressure's force on
 v_K is Q_K = Δx² G_K, G_K = Σ_f c_fK σ_f w_f s (p_K − p_J) e_d. So (A p)_I gains Δx Σ_f s σ_f w_f Σ_K c_fK (G_K/m_K)·e_d (matrix-free,
 symmetric; the MIC(0) factor leaves it to the CG) and v_K = v*_K + Δt Δx² G_K/m_K after the solve. Taken into the
@@ -112,12 +112,13 @@ from fluidlab_core.engine.emitters import takes_part
 
 AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
 SOFT = 9  # a node of a deformable solid without liquid (no unknown; its faces to the liquid are closed)
-# a face's solids' share from the mean s̄ of its nodes' volume shares: σ = clamp(½ + (s̄ − ½) SOFT_SHARP, 0, 1). The
-# quadratic B-spline spreads a body's volume over 1.5 cells each side of its surface (slope ¾ per cell at it), and
-# σ = s̄ counted the smeared part below a body's bottom as well as the closed face above it: a dropped 500 kg/m³
-# elastic cube floated at 0.43 (Archimedes 0.50; 16 cells). Inverting the slope at a plane surface (d = (½ − s̄)/¾
-# cells from it, σ = clamp(½ − d)) gives 4/3: 0.474, 0.473, 0.477 in its first three seconds.
-SOFT_SHARP = 4.0 / 3.0
+# A face's share σ inside the deformable solids: the share of the face's Δx³ box that their particles' boxes cover
+# (soft_faces). Before (2026-12-05 to 12-07) σ came from the mean s̄ of its two nodes' B-spline volume shares,
+# clamp(½ + (s̄ − ½)·4/3) (4/3 the inverse of the smearing's slope at a plane surface): a share along one axis, where
+# at a body's edges and corners the node's share is a product of two or three (s = Φ(d_x) Φ(d_z)) and the rule
+# read the faces under an edge column as open. The pressure's force on a 0.8 ρ_w elastic cube then fell 5 % short
+# of ρ_w g × its volume under the pressure's own zero level (its edge columns' faces 0.6-0.7 of theirs), and it
+# floated 1.5 mm (0.2 Δx) deep at 16 cells (0.829 for 0.80). docs/engine.md, "Elastic bodies in the projection".
 SHELL, LIQ_SHELL, AIR_SHELL, ENC_SHELL = 5, 6, 7, 8  # the classification's passes over the body's shell
 
 TOL = 1e-7  # the pressure CG's relative residual
@@ -282,6 +283,8 @@ class LiquidProjection:
             self.soft_dv = ti.Vector.field(3, f64, shape=shape)  # G_K/m_K of the CG's x (soft_of; 1/(m s))
             self.soft_nodes = ti.Vector.field(3, ti.i32, shape=int(np.prod(shape)))  # the nodes with solids' mass
             self.n_soft = ti.field(ti.i32, shape=())  # (not walls'), listed by mic0 for the CG's soft_of
+            self.soft_face = ti.Vector.field(3, f64, shape=shape)  # their share of the face box I + ½e_d (soft_faces)
+            self.serial_faces = runtime.ensure_init().backend == "cpu"  # soft_faces' sums in a fixed order
         dx = float(model.dx)
         if self.has_body:
             self._body_share = face_share_func(model.rigid.sdfs[0], dx)
@@ -409,9 +412,11 @@ class LiquidProjection:
         elif ti.static(self.has_soft):
             if self.kind[I] == SOFT or self.kind[J] == SOFT:
                 out = 1.0
-            else:
-                sb = 0.5 * (self.soft_s[I] + self.soft_s[J])
-                out = ti.min(ti.max(0.5 + (sb - 0.5) * SOFT_SHARP, 0.0), 1.0)
+            else:  # (J is I ± e_d: the face box of the lower node)
+                L = ti.min(I, J)
+                e = ti.abs(J - I)
+                out = ti.min(self.soft_face[L][0] * e[0] + self.soft_face[L][1] * e[1] + self.soft_face[L][2] * e[2],
+                             1.0)
         elif ti.static(self.has_body):
             rig = self.model.rigid
             R, c, valid = self._body()
@@ -820,6 +825,39 @@ class LiquidProjection:
                     v = ti.cast(grid.walls(model, xn, s.grid_v_f[I]), ti.f64)
                 self.kind[I] = ti.cast(LIQ, ti.i8)
                 self.vs[I] = v
+
+    @ti.kernel
+    def soft_faces(self, state: ti.template()):
+        """soft_face[I][d]: the share of the face box (Δx³ about the midpoint of the face from I to I + e_d) that
+        the deformable solids' particles cover, each particle an axis-aligned box of its volume V = V⁰ det F
+        (side h = V^⅓, at most Δx), split between the (at most two) face boxes its extent meets along each axis:
+        σ = Σ_p (V_p/Δx³) Π_a ℓ_a/h, ℓ_a the particle box's overlap with the face box along axis a. A body that
+        its particles' boxes tile (at rest, or stretched evenly) gets its faces' shares exactly."""
+        model = self.model
+        for I in ti.grouped(self.soft_face):
+            self.soft_face[I] = ti.Vector.zero(ti.f64, 3)
+        ti.loop_config(serialize=self.serial_faces)
+        for p in range(model.n_particles):
+            if takes_part(model, state, 0, p) and not transfer.is_fluid(model, p):
+                vol = ti.cast(model.rest_volume[p] * state.F[0, p].determinant(), ti.f64)
+                hc = ti.min(ti.pow(ti.max(vol, 0.0), 1.0 / 3.0) * model.inv_dx, 1.0)  # h in cells
+                u = ti.cast((state.x[0, p] - ti.Vector(model.origin)) * model.inv_dx, ti.f64)
+                for d in ti.static(range(3)):
+                    k0 = ti.Vector.zero(ti.i32, 3)  # the first face box the particle meets along each axis
+                    w0 = ti.Vector.zero(ti.f64, 3)  # the share of its extent in that box
+                    for a in ti.static(range(3)):
+                        ua = u[a] - (0.5 if a == d else 0.0)  # face box k spans [k − ½, k + ½] in these units
+                        lo = ua - 0.5 * hc
+                        k = ti.cast(ti.floor(lo + 0.5), ti.i32)
+                        k0[a] = k
+                        w0[a] = ti.min((ti.min(ua + 0.5 * hc, k + 0.5) - lo) / hc, 1.0)
+                    for o in ti.static(ti.grouped(ti.ndrange(2, 2, 2))):
+                        wgt = vol * model.inv_dx ** 3
+                        for a in ti.static(range(3)):
+                            wgt *= w0[a] if o[a] == 0 else 1.0 - w0[a]
+                        K = k0 + o
+                        if self._inside(K):
+                            self.soft_face[K][d] += wgt
 
     @ti.kernel
     def rhs(self):
@@ -1556,6 +1594,8 @@ class LiquidProjection:
             self.kinematic(state)
         self.classify()
         self.enclose_air()
+        if self.has_soft:
+            self.soft_faces(state)
         self.rhs()
         self.factor()
         self.solve(self.iterations)
