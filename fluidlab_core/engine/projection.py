@@ -117,7 +117,7 @@ SOFT = 9  # a node of a deformable solid without liquid (no unknown; its faces t
 # clamp(½ + (s̄ − ½)·4/3) (4/3 the inverse of the smearing's slope at a plane surface): a share along one axis, where
 # at a body's edges and corners the node's share is a product of two or three (s = Φ(d_x) Φ(d_z)) and the rule
 # read the faces under an edge column as open. The pressure's force on a 0.8 ρ_w elastic cube then fell 5 % short
-# of ρ_w g × its volume under the pressure's own zero level (its edge columns' faces 0.6-0.7 of theirs), and it
+# of ρ_w g × its volume under the pressure's own zero level (the rows of node columns beside its sides 0.58 and 0.63 of theirs), and it
 # floated 1.5 mm (0.2 Δx) deep at 16 cells (0.829 for 0.80). docs/engine.md, "Elastic bodies in the projection".
 SHELL, LIQ_SHELL, AIR_SHELL, ENC_SHELL = 5, 6, 7, 8  # the classification's passes over the body's shell
 
@@ -840,7 +840,7 @@ class LiquidProjection:
         for p in range(model.n_particles):
             if takes_part(model, state, 0, p) and not transfer.is_fluid(model, p):
                 vol = ti.cast(model.rest_volume[p] * state.F[0, p].determinant(), ti.f64)
-                hc = ti.min(ti.pow(ti.max(vol, 0.0), 1.0 / 3.0) * model.inv_dx, 1.0)  # h in cells
+                hc = ti.min(ti.max(ti.pow(ti.max(vol, 0.0), 1.0 / 3.0) * model.inv_dx, 1e-6), 1.0)  # h, cells
                 u = ti.cast((state.x[0, p] - ti.Vector(model.origin)) * model.inv_dx, ti.f64)
                 for d in ti.static(range(3)):
                     k0 = ti.Vector.zero(ti.i32, 3)  # the first face box the particle meets along each axis

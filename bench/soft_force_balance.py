@@ -1,0 +1,110 @@
+"""The pressure's force on a floating body against Archimedes (issue 19; docs/engine.md, "Elastic bodies in the
+projection"): a 4 cm cube of density D started at Archimedes' depth in 6 cm of water (12 cm tank, the projection),
+left to settle, then over [T0, T1] s, sampled every third substep:
+- the pressure's vertical force on the body (the solve's Δx² Σ_K G_K over the solids' nodes; a rigid body's ΔP/Δt)
+  over its weight, and over ρ_w g V_under, V_under the body's volume below the pressure's own zero level H_p (the
+  far field's p(z), fitted in four columns near the tank's corners, extrapolated to p = 0): 1 where the discrete
+  force is Archimedes' for where the pressure puts the surface;
+- V_under/V (Archimedes ρ/ρ_w);
+- for a deformable body, that force by row of node columns (summed along y) against ρ_w g V_under spread to the
+  columns by linear weights: where along the body the force falls short.
+
+    python bench/soft_force_balance.py [--res 16] [--density 800] [--body elastic|rigid] [--t0 0.5] [--t1 0.8]
+
+Appends its lines to bench/results/soft_force_balance.txt.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+RHO_W, G = 1000.0, 9.81
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--res", type=int, default=16)
+    ap.add_argument("--density", type=float, default=800.0)
+    ap.add_argument("--body", choices=["elastic", "rigid"], default="elastic")
+    ap.add_argument("--t0", type=float, default=0.5)
+    ap.add_argument("--t1", type=float, default=0.8)
+    args = ap.parse_args()
+    from fluidlab_core import materials as M
+    from fluidlab_core.apps import validation
+
+    rho, res, rigid = args.density, args.res, args.body == "rigid"
+    body = (M.Rigid(f"rigid_{rho:g}", density=rho) if rigid else
+            M.Elastic(f"elastic_{rho:g}", density=rho, shear_modulus=5000.0, lame_lambda=14000.0))
+    sim, scene = validation.floating_cube_sim(res, body, M.WATER, drop=None, width=0.12, side=0.04,
+                                              pressure="projection")
+    proj, model = sim.solver.proj, sim.solver.model
+    dx, pad = model.dx, int(round(-model.origin[0] / model.dx))
+    far = [(pad + 2, pad + 2), (pad + 2, pad + res - 2), (pad + res - 2, pad + 2), (pad + res - 2, pad + res - 2)]
+    rows = {"F": [], "V": [], "H": [], "colF": [], "colI": []}
+    count = [0]
+    impulse = proj.body_impulse
+
+    def sampled(state):  # the solve's impulse, then a sample of what it used
+        impulse(state)
+        count[0] += 1
+        if sim.time < args.t0 or count[0] % 3:
+            return
+        kind, p = proj.kind.to_numpy(), proj.p.to_numpy()
+        fits = []
+        for i, j in far:
+            liq = np.nonzero(kind[i, j, :] == 1)[0][1:-1]  # (LIQ; not the lowest and the highest node)
+            a, b = np.polyfit(model.origin[2] + liq * dx, p[i, j, liq], 1)
+            fits.append(-b / a)
+        H = float(np.mean(fits))
+        x, v = sim.positions("cube"), sim.volumes("cube")
+        h = scene.particle_spacing
+        under = v * np.clip((H - (x[:, 2] - h / 2)) / h, 0.0, 1.0)
+        if rigid:
+            F = float(proj.body_dP.to_numpy()[2]) / float(model.dt)
+        else:
+            fmap = (proj.soft_m.to_numpy() * proj.soft_dv.to_numpy()[..., 2]).sum(axis=2) * dx * dx
+            F = float(fmap.sum())
+            fx, fy = (x[:, 0] - model.origin[0]) / dx, (x[:, 1] - model.origin[1]) / dx
+            i0, j0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
+            tx, ty = fx - i0, fy - j0
+            ideal = np.zeros(fmap.shape)
+            for a, wa in ((0, 1 - tx), (1, tx)):
+                for b, wb in ((0, 1 - ty), (1, ty)):
+                    np.add.at(ideal, (i0 + a, j0 + b), RHO_W * G * under * wa * wb)
+            rows["colF"].append(fmap.sum(axis=1))
+            rows["colI"].append(ideal.sum(axis=1))
+        rows["F"].append(F)
+        rows["V"].append(float(under.sum()))
+        rows["H"].append(H)
+
+    proj.body_impulse = sampled
+    while sim.time < args.t1 - 1e-9:
+        sim.step(n=25)
+    F, V, H = np.array(rows["F"]), np.array(rows["V"]), np.array(rows["H"])
+    volume, weight = float(sim.volumes("cube").sum()), float(sim.volumes("cube").sum()) * rho * G
+    rev = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
+                         cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip()
+    lines = [f"# bench/soft_force_balance.py, {datetime.datetime.now():%Y-%m-%d %H:%M}, commit {rev}: {args.body} "
+             f"cube of {rho:g} kg/m³ at Archimedes' depth, {res} cells, {len(F)} samples over {args.t0:g}-{args.t1:g} s",
+             f"force/weight {F.mean() / weight:.4f}; force/(ρ_w g V_under(H_p)) {F.mean() / (RHO_W * G * V.mean()):.4f}; "
+             f"V_under/V {V.mean() / volume:.4f} (Archimedes {rho / RHO_W:.3f}); H_p {H.mean() * 1e3:.2f} mm"]
+    if rows["colF"]:
+        cf, ci = np.mean(rows["colF"], axis=0), np.mean(rows["colI"], axis=0)
+        parts = [f"{(model.origin[0] + i * dx) * 1e3:.1f} mm {cf[i] / ci[i]:.3f}" for i in range(len(cf)) if ci[i] > 1e-4]
+        lines.append("by row of columns (x; force over ρ_w g V_under there): " + ", ".join(parts))
+    text = "\n".join(lines)
+    print(text)
+    out = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "soft_force_balance.txt")
+    with open(out, "a") as f:
+        f.write(text + "\n\n")
+
+
+if __name__ == "__main__":
+    main()
