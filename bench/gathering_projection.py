@@ -15,9 +15,9 @@ For each task and liquid pressure ("state": the default weakly compressible liqu
 - the water's level at the horizon's end, measured: the median over the tank's inner columns away from the objects
   and the jet of the highest water particle's height plus half the particle spacing, beside the level above
   (Transporting; Gathering's has no inflow);
-- shipped: the shipped trajectory (trajectories/<task>/<task>_dp_seed0_<size>.json, optimised by DP on the
+- shipped: the shipped trajectory (the one trajectories/<task>/<task>_*_<size>.json, optimised on the
   default), its task loss and return (the sum of the per-step rewards), and the same for the tool held still (what
-  the trajectory gains over doing nothing);
+  the trajectory gains over doing nothing, 1 − loss/still loss);
 - the wall time per simulated step of the shipped rollout (after its first, compiling, call).
 With --float-seconds S, instead: the tool held still for S seconds, each second's mean share under (both objects),
 their tilt from upright at its end (a cube of density ratio s with s(1 − s) > 1/6, as the foam's 0.4, is unstable
@@ -117,7 +117,13 @@ def run(task_name: str, size: str, pressure: str) -> dict:
     out["level"], out["measured_level"] = level(task, sim), measured_level(task, sim)
     rest = task.evaluate(still)
     out["still_loss"], out["still_return"] = rest["loss"], rest["return"]
-    traj = Trajectory.load(ROOT / "trajectories" / task_name / f"{task_name}_dp_seed0_{size}.json")
+    shipped = sorted(p for p in (ROOT / "trajectories" / task_name).glob(f"{task_name}_*_{size}.json")
+                     if not p.name.endswith(".report.json"))
+    if len(shipped) != 1:  # (the shipped one was named <task>_dp_seed0_<size>.json until 2026-12-06)
+        raise SystemExit(f"expected one shipped trajectory for {task_name} at size {size} under trajectories/, "
+                         f"found {[p.name for p in shipped]}")
+    traj = Trajectory.load(shipped[0])
+    out["shipped"] = shipped[0].name
     actions, position = task.actions_from_trajectory(traj)
     t0 = time.perf_counter()
     res = task.evaluate(actions, position)
@@ -172,7 +178,8 @@ def main(argv=None):
     lines = [f"# bench/gathering_projection.py, {time.strftime('%Y-%m-%d %H:%M')}, size {args.size}, CPU, float32; the "
              f"tasks' liquid on the projection: APIC (Task.scene)",
              "# task | pressure | substeps | rest: share under, by volume (each object; Archimedes 0.40) | water level at the "
-             "end: incompressible, measured (mm) | still: loss, return | shipped: loss, return | s per step"]
+             "end: incompressible, measured (mm) | still: loss, return | shipped: loss, return | shipped's gain over still "
+             "(1 − loss/still loss) | s per step | shipped file"]
     if args.float_seconds:
         lines[1] = ("# task | size | pressure | second | share under, by volume (each object; Archimedes 0.40) | tilt at "
                     "its end (degrees) | water's max, rms speed at its end (m/s) | wall time")
@@ -186,7 +193,8 @@ def main(argv=None):
             shares = ", ".join(f"{v:.3f}" for v in r["rest_share"].values())
             line = (f"{name} | {pressure} | {r['substeps']} | {shares} | {1e3 * r['level']:.1f}, "
                     f"{1e3 * r['measured_level']:.1f} | {r['still_loss']:.3e}, {r['still_return']:.2f} | "
-                    f"{r['loss']:.3e}, {r['return']:.2f} | {r['step_s']:.3f}")
+                    f"{r['loss']:.3e}, {r['return']:.2f} | {100 * (1 - r['loss'] / r['still_loss']):.1f} % | "
+                    f"{r['step_s']:.3f} | {r['shipped']}")
             print(line, flush=True)
             lines.append(line)
     append_table(out, lines)
