@@ -42,7 +42,7 @@ def main():
     rho, res, rigid = args.density, args.res, args.body == "rigid"
     body = (M.Rigid(f"rigid_{rho:g}", density=rho) if rigid else
             M.Elastic(f"elastic_{rho:g}", density=rho, shear_modulus=5000.0, lame_lambda=14000.0))
-    sim, scene = validation.floating_cube_sim(res, body, M.WATER, drop=None, width=0.12, side=0.04,
+    sim, _ = validation.floating_cube_sim(res, body, M.WATER, drop=None, width=0.12, side=0.04,
                                               pressure="projection")
     proj, model = sim.solver.proj, sim.solver.model
     dx, pad = model.dx, int(round(-model.origin[0] / model.dx))
@@ -63,9 +63,8 @@ def main():
             a, b = np.polyfit(model.origin[2] + liq * dx, p[i, j, liq], 1)
             fits.append(-b / a)
         H = float(np.mean(fits))
-        x, v = sim.positions("cube"), sim.volumes("cube")
-        h = scene.particle_spacing
-        under = v * np.clip((H - (x[:, 2] - h / 2)) / h, 0.0, 1.0)
+        x = sim.positions("cube")
+        under = validation.volumes_below(H, x, sim.volumes("cube"))
         if rigid:
             F = float(proj.body_dP.to_numpy()[2]) / float(model.dt)
         else:

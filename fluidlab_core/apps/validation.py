@@ -263,9 +263,14 @@ def submerged_by_volume(liquid_volume: float, x_body, body_volumes, area: float)
 def volume_below(h: float, x_body, body_volumes) -> float:
     """Σ_p V_p clamp((h − z_p)/s_p + ½, 0, 1) (m³): the part of a body's volume below height h, each particle
     counted by the part of its layer, s_p = V_p^(1/3) thick, under h (submerged_by_volume's count)."""
+    return float(volumes_below(h, x_body, body_volumes).sum())
+
+
+def volumes_below(h: float, x_body, body_volumes) -> np.ndarray:
+    """Each particle's V_p clamp((h − z_p)/s_p + ½, 0, 1) (m³): volume_below's terms."""
     z = np.asarray(x_body)[:, 2]
     v = np.asarray(body_volumes, dtype=np.float64)
-    return float((v * np.clip((h - z) / np.cbrt(v) + 0.5, 0.0, 1.0)).sum())
+    return v * np.clip((h - z) / np.cbrt(v) + 0.5, 0.0, 1.0)
 
 
 def best_rotation(start, now) -> np.ndarray:
