@@ -68,8 +68,8 @@ Batty et al. 2007's variational weights for a wall through the nodes; 0 beyond i
 r_f = x_f − c:
     (D u)_I = Σ_f s w_f [a_f u_f + σ_f K_f·q] / Δx
     u_f = ½ (u*_I + u*_J)·e_d − Δt (p_J − p_I)/(ρ Δx)      (liquid–liquid)
-    u_f = u*_I·e_d − Δt (0 − p_I)/(ρ θ Δx)                 (liquid–air: p = 0 at θ of the way, θ from the fills,
-                                                             θ ≥ 0.1; ghost fluid, Gibou et al. 2002)
+    u_f = u*_I·e_d − Δt (0 − p_I)/(ρ θ Δx)                 (liquid–air: p = 0 at θ of the way, θ from the fills'
+                                                             B-spline inverse, θ ≥ 0.1, THETA_RULE; ghost fluid)
     u_f = the nodes' mean, after and before the substep      (outside the solve: air; AFLIP's u_f − u⁰_f there is
                                                              gravity, as for a free particle)
     u_f = u⁰_f                                              (outside the solve with a node in a wall, static or
@@ -130,6 +130,16 @@ CORRECTION_TOL = 1e-3
 MAX_IT = 400  # the CG's iteration cap
 FILL = 0.5  # a node with this much of its room filled by liquid is liquid (an unknown)
 THETA_MIN = 0.1  # the least share θ of the way from a liquid node to an air node at which p = 0 is placed
+# Where between a liquid node I and an air node J the free surface (p = 0) lies. A node's fill is its B-spline
+# stencil's share of liquid, so across a flat surface at height H the fills are C((H − x)/Δx), C the quadratic
+# B-spline's cumulative distribution (a cubic by pieces), and the surface is where each fill's inverse puts it:
+# θ = u_I or 1 + u_J, u = C⁻¹(fill) (cells), averaged with the weights C'(u) (the fill nearer ½ measures it better).
+# "linear" (before 2026-12-08): θ = (φ_I − ½)/(φ_I − φ_J), exact only where the surface lies on a node or halfway
+# between two; a quarter cell above a node it put p = 0 0.048 Δx too high (0.36 mm at 16 cells), and a quarter cell
+# below one as much too low, so a floating body's depth against the liquid's volume moved with where the surface met
+# the grid (bench/free_surface_level.py; docs/engine.md, "The free surface's height"). The ghost-fluid boundary
+# itself: Gibou, Fedkiw, Cheng & Kang 2002.
+THETA_RULE = "spline"  # or "linear"; read when the kernels compile
 OPEN_MIN = 0.5  # a shell node whose faces are open by less than this (faces, all six together) is the body's
 KIN_OPEN_MIN = 0.5  # a liquid node inside a static or tool whose faces are open by less than this is theirs
 SUB_BOXES = 4  # sub-boxes per axis for a face's solid share where the body's surface may cross its box
@@ -198,6 +208,35 @@ def stencil_share_func(sdf, dx: float):
         return out
 
     return share
+
+
+@ti.func
+def _spline_cdf_inverse(c):
+    """u (cells) with C(u) = c, C the quadratic B-spline's cumulative distribution: (u + 3/2)³/6 for u ≤ −½,
+    ½ + ¾u − u³/3 for |u| ≤ ½, 1 − (3/2 − u)³/6 for u ≥ ½; c clamped into (0, 1)."""
+    c = ti.min(ti.max(c, 1e-9), 1.0 - 1e-9)
+    u = ti.f64(0.0)
+    if c <= 1.0 / 6.0:
+        u = ti.pow(6.0 * c, 1.0 / 3.0) - 1.5
+    elif c >= 5.0 / 6.0:
+        u = 1.5 - ti.pow(6.0 * (1.0 - c), 1.0 / 3.0)
+    else:  # Newton on the middle cubic (its slope ¾ − u² ≥ ½ there)
+        u = (c - 0.5) / 0.75
+        for _ in ti.static(range(4)):
+            u -= (0.5 + 0.75 * u - u * u * u / 3.0 - c) / (0.75 - u * u)
+    return u
+
+
+@ti.func
+def _spline_density(u):
+    """C'(u): the quadratic B-spline at u (cells)."""
+    au = ti.abs(u)
+    out = ti.f64(0.0)
+    if au <= 0.5:
+        out = 0.75 - au * au
+    elif au < 1.5:
+        out = 0.5 * (1.5 - au) * (1.5 - au)
+    return out
 
 
 @ti.data_oriented
@@ -436,11 +475,16 @@ class LiquidProjection:
 
     @ti.func
     def _theta(self, I, J):
-        """Share of the way from liquid node I to air node J at which the fill crosses FILL."""
+        """Share θ of the way from liquid node I to air node J at which the free surface lies (THETA_RULE)."""
         a, b = self.phi[I], self.phi[J]
         th = ti.f64(1.0)
         if a - b > 1e-9:
             th = (a - FILL) / (a - b)
+            if ti.static(THETA_RULE == "spline"):
+                ua, ub = _spline_cdf_inverse(a), _spline_cdf_inverse(b)
+                wa, wb = _spline_density(ua), _spline_density(ub)
+                if wa + wb > 1e-6:
+                    th = (wa * ua + wb * (1.0 + ub)) / (wa + wb)
         return ti.min(ti.max(th, THETA_MIN), 1.0)
 
     @ti.func
