@@ -30,6 +30,7 @@ WIDTH, LEVEL = 0.12, 0.06
 def run(res: int, phase: float, rule: str, seconds: float) -> float:
     import fluidlab_core as fl
     from fluidlab_core import materials as M
+    from fluidlab_core.apps import validation
     from fluidlab_core.engine import projection
     from fluidlab_core.shapes import Box
 
@@ -42,22 +43,15 @@ def run(res: int, phase: float, rule: str, seconds: float) -> float:
     scene.add_particles(Box((0, 0, 0), (WIDTH, WIDTH, level)), M.WATER, name="water")
     scene.substeps = scene.stable_substeps()
     sim = scene.build()
-    proj, model = sim.solver.proj, sim.solver.model
-    pad = int(round(-model.origin[0] / model.dx))
+    pad = int(round(-sim.solver.model.origin[0] / sim.solver.model.dx))
+    interior = [(i, j) for i in range(pad + 2, pad + res - 1) for j in range(pad + 2, pad + res - 1)]
     gaps = []
     while sim.time < seconds - 1e-9:
         sim.step(n=1)
         if sim.time < seconds / 3:
             continue
-        kind, p = proj.kind.to_numpy(), proj.p.to_numpy()
-        heights = []
-        for i in range(pad + 2, pad + res - 1):
-            for j in range(pad + 2, pad + res - 1):
-                liq = np.nonzero(kind[i, j, :] == projection.LIQ)[0][1:-1]
-                a, b = np.polyfit(model.origin[2] + liq * model.dx, p[i, j, liq], 1)
-                heights.append(-b / a)
         h_v = float(sim.volumes("water").sum()) / WIDTH ** 2
-        gaps.append((np.mean(heights) - h_v) / dx)
+        gaps.append((validation.pressure_zero(sim, interior) - h_v) / dx)
     return float(np.mean(gaps))
 
 
@@ -87,6 +81,7 @@ def main():
              "  ".join(f"{h:>26}" for h in head)]
     lines += ["  ".join(f"{c:>26}" for c in r) for r in rows]
     append_table(Path(__file__).resolve().parent / "results" / "free_surface_level_cpu.txt", lines)
+
 
 if __name__ == "__main__":
     main()

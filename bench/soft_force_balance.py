@@ -50,7 +50,7 @@ def main():
     body = (M.Rigid(f"rigid_{rho:g}", density=rho) if rigid else
             M.Elastic(f"elastic_{rho:g}", density=rho, shear_modulus=5000.0, lame_lambda=14000.0))
     if args.tilt:
-        sim = _tilted_sim(res, body, np.radians(args.tilt))
+        sim, x_start = _tilted_sim(res, body, np.radians(args.tilt))
     else:
         sim, _ = validation.floating_cube_sim(res, body, M.WATER, drop=None, width=0.12, side=0.04,
                                               pressure="projection")
@@ -66,13 +66,7 @@ def main():
         count[0] += 1
         if sim.time < args.t0 or count[0] % 3:
             return
-        kind, p = proj.kind.to_numpy(), proj.p.to_numpy()
-        fits = []
-        for i, j in far:
-            liq = np.nonzero(kind[i, j, :] == 1)[0][1:-1]  # (LIQ; not the lowest and the highest node)
-            a, b = np.polyfit(model.origin[2] + liq * dx, p[i, j, liq], 1)
-            fits.append(-b / a)
-        H = float(np.mean(fits))
+        H = validation.pressure_zero(sim, far)
         x = sim.positions("cube")
         under = validation.volumes_below(H, x, sim.volumes("cube"))
         if rigid:
@@ -104,7 +98,7 @@ def main():
     lines = [f"# bench/soft_force_balance.py, {datetime.datetime.now():%Y-%m-%d %H:%M}, commit {rev}: {args.body} "
              f"cube of {rho:g} kg/m³ at Archimedes' depth, {res} cells, {len(F)} samples over {args.t0:g}-{args.t1:g} s"
              + f", free surface θ {projection.THETA_RULE}"
-             + (f", turned {args.tilt:g}° about y (by {_tilt_now(sim):+.1f}° more at the end)" if args.tilt else ""),
+             + (f", turned {args.tilt:g}° about y (by {_turned_since(x_start, sim):+.1f}° more at the end)" if args.tilt else ""),
              f"force/weight {F.mean() / weight:.4f}; force/(ρ_w g V_under(H_p)) {F.mean() / (RHO_W * G * V.mean()):.4f}; "
              f"V_under/V {V.mean() / volume:.4f} (Archimedes {rho / RHO_W:.3f}); H_p {H.mean() * 1e3:.2f} mm; "
              f"share under the liquid's volume level {np.mean(rows['share']):.4f}"]
@@ -120,7 +114,6 @@ def main():
 
 
 SIDE, WIDTH, LEVEL = 0.04, 0.12, 0.06
-_START = {}
 
 
 class _TurnedCube:
@@ -175,9 +168,11 @@ class _WaterBeside:
 
 
 def _tilted_sim(res, body, angle):
-    """The bench's tank with the cube turned by `angle` about y at the height that puts ρ/ρ_w of its volume under
-    the still surface (bisection on its lattice, each point a layer as validation.volumes_below counts it)."""
+    """(simulator, the cube's particles' start positions): the bench's tank with the cube turned by `angle` about y
+    at the height that puts ρ/ρ_w of its volume under the still surface (bisection on its lattice, each point a layer
+    as validation.volumes_below counts it)."""
     import fluidlab_core as fl
+    from fluidlab_core import materials as M
     from fluidlab_core.apps import validation
 
     scene = fl.Scene(lower=(0, 0, 0), upper=(WIDTH, WIDTH, 0.12), grid_res=res, dt=2e-3, substeps=1,
@@ -193,18 +188,17 @@ def _tilted_sim(res, body, angle):
         else:
             hi = mid
     cube = _TurnedCube((WIDTH / 2, WIDTH / 2, LEVEL + 0.5 * (lo + hi)), angle)
-    scene.add_particles(_WaterBeside(cube), __import__("fluidlab_core").materials.WATER, name="water")
+    scene.add_particles(_WaterBeside(cube), M.WATER, name="water")
     scene.add_particles(cube, body, name="cube")
     scene.substeps = scene.stable_substeps()
     sim = scene.build()
-    _START["x"] = sim.positions("cube").copy()
-    return sim
+    return sim, sim.positions("cube").copy()
 
 
-def _tilt_now(sim):
-    """The cube's turn about y now (degrees), from its particles (validation.best_rotation) composed with the start's."""
+def _turned_since(x_start, sim):
+    """How far the cube has turned about y since its particles were at x_start (degrees; validation.best_rotation)."""
     from fluidlab_core.apps import validation
-    R = validation.best_rotation(_START["x"], sim.positions("cube"))
+    R = validation.best_rotation(x_start, sim.positions("cube"))
     return float(np.degrees(np.arctan2(R[0, 2], R[0, 0])))
 
 

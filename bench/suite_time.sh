@@ -8,7 +8,7 @@
 # into .venv first (pip install --no-deps .). Writes bench/results/test_durations_<mode>_cpu.txt: a header (date,
 # commit, cores, mode, exit status, wall time), pytest's summary line, the 40 slowest items and any FAILED lines;
 # with `cold`, also tests/file_seconds.json (each file's seconds: the suite queues its files heaviest first by it,
-# tests/conftest.py).
+# tests/conftest.py). pytest's whole output (the failures' tracebacks) is kept in out/suite_time_<mode>.log.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mode="${1:-warm}"
@@ -41,4 +41,8 @@ end=$(date +%s)
   grep -E "^(FAILED|ERROR)" "$log" || true
 } >"$out"
 cat "$out"
+# the whole pytest output (the failures' tracebacks), which the temporary folder would take with it
+mkdir -p out
+cp "$log" "out/suite_time_${mode}.log"
+echo "pytest's output: out/suite_time_${mode}.log"
 exit $rc

@@ -273,6 +273,22 @@ def volumes_below(h: float, x_body, body_volumes) -> np.ndarray:
     return v * np.clip((h - z) / np.cbrt(v) + 0.5, 0.0, 1.0)
 
 
+def pressure_zero(sim, columns) -> float:
+    """The height (m) at which the pressure of a Scene(pressure="projection") simulator reaches 0: in each column of
+    nodes (i, j) given, the line fitted to the solve's pressure over its liquid unknowns but the lowest and the
+    highest (the floor's row and the surface's), extrapolated to p = 0; the mean over the columns."""
+    from fluidlab_core.engine.projection import LIQ
+
+    proj, model = sim.solver.proj, sim.solver.model
+    kind, p = proj.kind.to_numpy(), proj.p.to_numpy()
+    zeros = []
+    for i, j in columns:
+        rows = np.nonzero(kind[i, j, :] == LIQ)[0][1:-1]
+        a, b = np.polyfit(model.origin[2] + rows * model.dx, p[i, j, rows], 1)
+        zeros.append(-b / a)
+    return float(np.mean(zeros))
+
+
 def best_rotation(start, now) -> np.ndarray:
     """The 3×3 rotation that best maps a body's particles at `start` onto them `now`, about their centroids
     (least squares: Kabsch's SVD). For a body's tilt or roll from its particles alone."""
