@@ -163,8 +163,8 @@ class Task:
         if not self.tool_touches_particles and contact != "hard":
             contact, scene = "hard", None
         key = (contact, grad)
-        if key not in self._sims and not grad and (contact, True) in self._sims:
-            return self._sims[(contact, True)]
+        if not grad and (contact, True) in self._sims:  # (even where a forward one was built before it: the
+            return self._sims[(contact, True)]         # forward calls then run on what DP's judgements ran on)
         if key not in self._sims:
             scene = scene or self.scene(contact)
             sim = scene.build(requires_grad=grad, grad_max_steps=grad_max_steps)
