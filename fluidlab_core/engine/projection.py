@@ -107,7 +107,7 @@ import numpy as np
 import taichi as ti
 
 from fluidlab_core import runtime
-from fluidlab_core.engine import grid, transfer
+from fluidlab_core.engine import grid, statics, transfer
 from fluidlab_core.engine.emitters import takes_part
 
 AIR, LIQ, WALL, BSOLID = 0, 1, 3, 4
@@ -212,8 +212,8 @@ def stencil_share_func(sdf, dx: float):
 
 @ti.func
 def _spline_cdf_inverse(c):
-    """u (cells) with C(u) = c, C the quadratic B-spline's cumulative distribution: (u + 3/2)³/6 for u ≤ −½,
-    ½ + ¾u − u³/3 for |u| ≤ ½, 1 − (3/2 − u)³/6 for u ≥ ½; c clamped into (0, 1)."""
+    """u (cells) with statics.bspline_cdf(u) = c (the quadratic B-spline's cumulative distribution: (u + 3/2)³/6 for
+    u ≤ −½, ½ + ¾u − u³/3 for |u| ≤ ½, 1 − (3/2 − u)³/6 for u ≥ ½); c clamped into (0, 1)."""
     c = ti.min(ti.max(c, 1e-9), 1.0 - 1e-9)
     u = ti.f64(0.0)
     if c <= 1.0 / 6.0:
@@ -223,7 +223,7 @@ def _spline_cdf_inverse(c):
     else:  # Newton on the middle cubic (its slope ¾ − u² ≥ ½ there)
         u = (c - 0.5) / 0.75
         for _ in ti.static(range(4)):
-            u -= (0.5 + 0.75 * u - u * u * u / 3.0 - c) / (0.75 - u * u)
+            u -= (statics.bspline_cdf(u) - c) / (0.75 - u * u)
     return u
 
 
